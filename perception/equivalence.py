@@ -1,0 +1,59 @@
+"""Classes of geometrically equivalent parts, as in the paper: two parts are equivalent when their canonical
+bounding-box dimensions differ by less than 0.1 on every axis and the chamfer distance between their
+normalised point clouds is below 0.02 (under the best of the four right-handed sign flips of the PCA axes,
+since a principal axis has no intrinsic direction)."""
+
+from __future__ import annotations
+
+import networkx as nx
+import numpy as np
+
+from perception.pointcloud import chamfer_distance
+
+EXTENT_TOLERANCE = 0.1
+CHAMFER_TOLERANCE = 0.02
+MAX_PART_INSTANCES = 20  # P_max: length of the instance one-hot
+
+_PROPER_FLIPS = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=np.float32)
+
+
+def aligned_chamfer(points_a: np.ndarray, points_b: np.ndarray) -> float:
+    """Chamfer distance between two canonical clouds, minimised over the axis sign flips."""
+    return min(chamfer_distance(points_a * flip, points_b) for flip in _PROPER_FLIPS)
+
+
+def equivalence_classes(points_norm: np.ndarray, extents_norm: np.ndarray,
+                        extent_tolerance: float = EXTENT_TOLERANCE,
+                        chamfer_tolerance: float = CHAMFER_TOLERANCE) -> np.ndarray:
+    """(N,) int64 class id per part, numbered 0.. in order of first appearance.
+
+    points_norm: (N, P, 3) canonical clouds, normalised units. extents_norm: (N, 3) canonical box dimensions.
+    Equivalence is made transitive by taking connected components of the pairwise relation.
+    """
+    n = len(points_norm)
+    graph = nx.Graph()
+    graph.add_nodes_from(range(n))
+    for i in range(n):
+        for j in range(i + 1, n):
+            if np.all(np.abs(extents_norm[i] - extents_norm[j]) < extent_tolerance) and (
+                aligned_chamfer(points_norm[i], points_norm[j]) < chamfer_tolerance
+            ):
+                graph.add_edge(i, j)
+    classes = np.empty(n, dtype=np.int64)
+    components = sorted(nx.connected_components(graph), key=min)
+    for class_id, members in enumerate(components):
+        classes[list(members)] = class_id
+    return classes
+
+
+def instance_onehot(classes: np.ndarray, max_instances: int = MAX_PART_INSTANCES) -> np.ndarray:
+    """(N, max_instances) float32: one-hot of each part's index among the parts of its class."""
+    onehot = np.zeros((len(classes), max_instances), dtype=np.float32)
+    seen: dict[int, int] = {}
+    for i, c in enumerate(classes):
+        k = seen.get(int(c), 0)
+        if k >= max_instances:
+            raise ValueError(f"more than {max_instances} equivalent parts in class {int(c)}")
+        onehot[i, k] = 1.0
+        seen[int(c)] = k + 1
+    return onehot

@@ -1,0 +1,238 @@
+"""The assembly folder format: ground truth and target poses everywhere in the project.
+
+Layout (the same as ``shared/furniture``)::
+
+    <object>/assembly.json
+    <object>/parts/<part>.obj     one mesh per part, in that part's own frame
+
+``assembly.json``::
+
+    {"name": ..., "units": "m", "up": "+z",
+     "parts": [{"name": "part_00", "mesh": "parts/part_00.obj",
+                "pose": {"position": [x, y, z], "quat_wxyz": [w, x, y, z]}}, ...]}
+
+A part's pose is ``assembly_from_part``: ``x_assembly = R(q) @ x_part + position``. The assembly frame has +z up,
+the lowest point of the assembled object at z = 0 and its origin at the centre of the footprint. Other keys
+(``source``, ``license``, ...) are kept as ``metadata`` and written back unchanged.
+
+:func:`read_assembly` validates everything and raises :class:`AssemblyError` naming the file, the part and the
+value at fault. Meshes are returned in metres whatever the file's ``units``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from planning.pose import Pose
+
+MAX_PARTS = 20
+UNIT_TO_METRES = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+ASSEMBLY_FILE = "assembly.json"
+
+
+class AssemblyError(ValueError):
+    """A malformed assembly folder; the message names the file, the part and the value at fault."""
+
+
+@dataclass
+class AssemblyPart:
+    """One part: its mesh in its own frame (metres) and its pose ``assembly_from_part``."""
+
+    name: str
+    mesh: trimesh.Trimesh
+    assembly_from_part: Pose
+    mesh_file: str = ""  # path relative to the assembly folder, e.g. "parts/part_00.obj"
+
+
+@dataclass
+class Assembly:
+    """An assembled object: parts with meshes (metres, part frames) and poses in the assembly frame (+z up)."""
+
+    name: str
+    parts: list[AssemblyPart]
+    metadata: dict = field(default_factory=dict)
+
+    @property
+    def part_names(self) -> list[str]:
+        return [p.name for p in self.parts]
+
+    def part(self, name: str) -> AssemblyPart:
+        for p in self.parts:
+            if p.name == name:
+                return p
+        raise KeyError(f"assembly {self.name!r} has no part {name!r} (parts: {', '.join(self.part_names)})")
+
+    def meshes_in_assembly_frame(self) -> list[trimesh.Trimesh]:
+        """Each part's mesh moved to its pose (copies), metres, assembly frame."""
+        out = []
+        for p in self.parts:
+            m = p.mesh.copy()
+            m.apply_transform(p.assembly_from_part.matrix())
+            out.append(m)
+        return out
+
+    def bounds(self) -> np.ndarray:
+        """(2, 3) axis-aligned bounds of the assembled object, metres, assembly frame."""
+        corners = np.concatenate([m.bounds for m in self.meshes_in_assembly_frame()])
+        return np.stack([corners.min(axis=0), corners.max(axis=0)])
+
+
+# ---------------------------------------------------------------------------------------------------------
+# reading
+# ---------------------------------------------------------------------------------------------------------
+
+
+def _load_mesh(path: Path, where: str, scale_to_metres: float) -> trimesh.Trimesh:
+    if not path.is_file():
+        raise AssemblyError(f"{where}: mesh file {path} does not exist")
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types on corrupt files
+        raise AssemblyError(f"{where}: mesh file {path} cannot be read as a mesh ({exc})") from exc
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or len(loaded.vertices) < 3:
+        raise AssemblyError(f"{where}: mesh file {path} holds no triangles")
+    if not np.all(np.isfinite(loaded.vertices)):
+        raise AssemblyError(f"{where}: mesh file {path} has non-finite vertex coordinates")
+    if loaded.area <= 0 or float(np.max(loaded.extents)) <= 0:
+        raise AssemblyError(f"{where}: mesh file {path} is degenerate (zero area)")
+    if scale_to_metres != 1.0:
+        loaded.apply_scale(scale_to_metres)
+    return loaded
+
+
+def _parse_pose(entry: object, where: str) -> Pose:
+    if not isinstance(entry, dict) or "position" not in entry or "quat_wxyz" not in entry:
+        raise AssemblyError(f"{where}: 'pose' must be an object with 'position' and 'quat_wxyz', got {entry!r}")
+    position, quat = entry["position"], entry["quat_wxyz"]
+    for key, value, size in (("position", position, 3), ("quat_wxyz", quat, 4)):
+        if (
+            not isinstance(value, list)
+            or len(value) != size
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+        ):
+            raise AssemblyError(f"{where}: pose.{key} must be a list of {size} numbers, got {value!r}")
+        if not all(math.isfinite(v) for v in value):
+            raise AssemblyError(f"{where}: pose.{key} {value} contains NaN or infinity")
+    norm = math.sqrt(sum(v * v for v in quat))
+    if abs(norm - 1.0) > 1e-3:
+        raise AssemblyError(
+            f"{where}: pose.quat_wxyz {quat} is not a unit quaternion (norm {norm:.6f}); write (w, x, y, z) with norm 1"
+        )
+    return Pose(np.array(position, dtype=np.float64), np.array(quat, dtype=np.float64))
+
+
+def read_assembly_json(json_path: str | os.PathLike) -> dict:
+    """Parse and shape-check an ``assembly.json`` without loading meshes. Returns the raw dictionary."""
+    json_path = Path(json_path)
+    if not json_path.is_file():
+        raise AssemblyError(f"{json_path}: file does not exist")
+    try:
+        data = json.loads(json_path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise AssemblyError(f"{json_path}: not valid JSON ({exc})") from exc
+    if not isinstance(data, dict) or not isinstance(data.get("parts"), list):
+        raise AssemblyError(f"{json_path}: expected an object with a 'parts' list")
+    units = data.get("units", "m")
+    if units not in UNIT_TO_METRES:
+        raise AssemblyError(
+            f"{json_path}: unknown units {units!r}; use one of {', '.join(repr(u) for u in UNIT_TO_METRES)}"
+        )
+    up = data.get("up", "+z")
+    if up != "+z":
+        raise AssemblyError(f"{json_path}: up axis {up!r} is not supported; the assembly frame must be '+z' up")
+    parts = data["parts"]
+    if len(parts) == 0:
+        raise AssemblyError(f"{json_path}: 'parts' is empty")
+    if len(parts) > MAX_PARTS:
+        raise AssemblyError(f"{json_path}: {len(parts)} parts, more than the {MAX_PARTS} the project supports")
+    seen: set[str] = set()
+    for index, part in enumerate(parts):
+        if not isinstance(part, dict) or not isinstance(part.get("name"), str) or not part["name"]:
+            raise AssemblyError(f"{json_path}: parts[{index}] needs a non-empty string 'name'")
+        if part["name"] in seen:
+            raise AssemblyError(f"{json_path}: part name {part['name']!r} appears more than once")
+        seen.add(part["name"])
+        if not isinstance(part.get("mesh"), str):
+            raise AssemblyError(f"{json_path}: part {part['name']!r} needs a string 'mesh' path")
+    return data
+
+
+def read_poses(json_path: str | os.PathLike) -> dict[str, Pose]:
+    """Read only the poses of an ``assembly.json`` (for ``--poses``): ``{part name: assembly_from_part}``, metres."""
+    json_path = Path(json_path)
+    data = read_assembly_json(json_path)
+    scale = UNIT_TO_METRES[data.get("units", "m")]
+    poses = {}
+    for part in data["parts"]:
+        pose = _parse_pose(part.get("pose"), f"{json_path}: part {part['name']!r}")
+        poses[part["name"]] = Pose(pose.position * scale, pose.quat_wxyz)
+    return poses
+
+
+def read_assembly(folder: str | os.PathLike) -> Assembly:
+    """Read and validate an assembly folder. Meshes and positions come back in metres."""
+    folder = Path(folder)
+    json_path = folder / ASSEMBLY_FILE
+    if not folder.is_dir():
+        raise AssemblyError(f"{folder}: assembly folder does not exist")
+    data = read_assembly_json(json_path)
+    scale = UNIT_TO_METRES[data.get("units", "m")]
+    parts = []
+    for entry in data["parts"]:
+        where = f"{json_path}: part {entry['name']!r}"
+        pose = _parse_pose(entry.get("pose"), where)
+        mesh = _load_mesh(folder / entry["mesh"], where, scale)
+        parts.append(AssemblyPart(entry["name"], mesh, Pose(pose.position * scale, pose.quat_wxyz), entry["mesh"]))
+    metadata = {k: v for k, v in data.items() if k not in ("name", "parts", "units", "up")}
+    return Assembly(name=str(data.get("name", folder.name)), parts=parts, metadata=metadata)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# writing
+# ---------------------------------------------------------------------------------------------------------
+
+
+def assembly_to_json(assembly: Assembly) -> dict:
+    parts = []
+    for p in assembly.parts:
+        mesh_file = p.mesh_file or f"parts/{p.name}.obj"
+        parts.append({"name": p.name, "mesh": mesh_file, "pose": p.assembly_from_part.to_dict()})
+    return {"name": assembly.name, "units": "m", "up": "+z", **assembly.metadata, "parts": parts}
+
+
+def write_assembly(assembly: Assembly, folder: str | os.PathLike, overwrite: bool = False) -> Path:
+    """Write ``assembly`` as an assembly folder (metres). The folder appears whole or not at all: everything is
+    written to a temporary sibling and renamed into place."""
+    folder = Path(folder)
+    if len(assembly.parts) > MAX_PARTS:
+        raise AssemblyError(f"{assembly.name}: {len(assembly.parts)} parts, more than {MAX_PARTS}")
+    names = assembly.part_names
+    if len(set(names)) != len(names):
+        raise AssemblyError(f"{assembly.name}: duplicate part names {names}")
+    if folder.exists() and not overwrite:
+        raise FileExistsError(f"{folder} already exists")
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    try:
+        document = assembly_to_json(assembly)
+        for part, entry in zip(assembly.parts, document["parts"]):
+            target = tmp / entry["mesh"]
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_text(trimesh.exchange.obj.export_obj(part.mesh, include_normals=False, include_texture=False))
+        (tmp / ASSEMBLY_FILE).write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
+        if folder.exists():
+            shutil.rmtree(folder)
+        os.replace(tmp, folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder
