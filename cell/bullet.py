@@ -7,10 +7,18 @@ command-line output stays readable. Clients are always explicit (``physicsClient
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
 import sys
 
 _pybullet = None
+
+
+def _libc_fflush() -> None:
+    try:
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError):
+        pass
 
 
 @contextlib.contextmanager
@@ -24,6 +32,7 @@ def silenced_stdout():
             yield
     finally:
         sys.stdout.flush()
+        _libc_fflush()  # C printf output sits in the C library's buffer: flush it while it still goes nowhere
         os.dup2(saved, 1)
         os.close(saved)
 

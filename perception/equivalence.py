@@ -7,8 +7,7 @@ from __future__ import annotations
 
 import networkx as nx
 import numpy as np
-
-from perception.pointcloud import chamfer_distance
+from scipy.spatial import cKDTree
 
 EXTENT_TOLERANCE = 0.1
 CHAMFER_TOLERANCE = 0.02
@@ -17,9 +16,19 @@ MAX_PART_INSTANCES = 20  # P_max: length of the instance one-hot
 _PROPER_FLIPS = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=np.float32)
 
 
-def aligned_chamfer(points_a: np.ndarray, points_b: np.ndarray) -> float:
-    """Chamfer distance between two canonical clouds, minimised over the axis sign flips."""
-    return min(chamfer_distance(points_a * flip, points_b) for flip in _PROPER_FLIPS)
+def aligned_chamfer(points_a: np.ndarray, points_b: np.ndarray, tree_a: cKDTree | None = None,
+                    tree_b: cKDTree | None = None) -> float:
+    """:func:`~perception.pointcloud.chamfer_distance` between two canonical clouds, minimised over the axis
+    sign flips. A flip F is an isometry and its own inverse, so the b -> F(a) distances equal F(b) -> a ones
+    and both directions reuse the trees of the unflipped clouds (pass them in to reuse across pairs)."""
+    tree_a = tree_a if tree_a is not None else cKDTree(points_a)
+    tree_b = tree_b if tree_b is not None else cKDTree(points_b)
+    best = np.inf
+    for flip in _PROPER_FLIPS:
+        d_ab, _ = tree_b.query(points_a * flip)
+        d_ba, _ = tree_a.query(points_b * flip)
+        best = min(best, float(np.mean(d_ab**2) + np.mean(d_ba**2)))
+    return best
 
 
 def equivalence_classes(points_norm: np.ndarray, extents_norm: np.ndarray,
@@ -31,12 +40,13 @@ def equivalence_classes(points_norm: np.ndarray, extents_norm: np.ndarray,
     Equivalence is made transitive by taking connected components of the pairwise relation.
     """
     n = len(points_norm)
+    trees = [cKDTree(p) for p in points_norm]
     graph = nx.Graph()
     graph.add_nodes_from(range(n))
     for i in range(n):
         for j in range(i + 1, n):
             if np.all(np.abs(extents_norm[i] - extents_norm[j]) < extent_tolerance) and (
-                aligned_chamfer(points_norm[i], points_norm[j]) < chamfer_tolerance
+                aligned_chamfer(points_norm[i], points_norm[j], trees[i], trees[j]) < chamfer_tolerance
             ):
                 graph.add_edge(i, j)
     classes = np.empty(n, dtype=np.int64)
