@@ -1,6 +1,6 @@
 """PyBullet import and client handling: one place for the simulator's global quirks.
 
-PyBullet prints a build banner on stdout when it is first imported; :func:`import_pybullet` swallows it so
+PyBullet prints a build banner when it is first imported; :func:`import_pybullet` swallows it so
 command-line output stays readable. Clients are always explicit (``physicsClientId``): no global handle.
 """
 
@@ -22,26 +22,32 @@ def _libc_fflush() -> None:
 
 
 @contextlib.contextmanager
-def silenced_stdout():
-    """Redirect the C-level stdout (file descriptor 1) to /dev/null for the duration of the block."""
+def silenced_output():
+    """Send the C-level stdout and stderr (file descriptors 1 and 2) to /dev/null for the duration of the block.
+    PyBullet's C code prints its banner on either, through the C library's buffers."""
     sys.stdout.flush()
-    saved = os.dup(1)
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
     try:
         with open(os.devnull, "w") as devnull:
             os.dup2(devnull.fileno(), 1)
+            os.dup2(devnull.fileno(), 2)
             yield
     finally:
         sys.stdout.flush()
-        _libc_fflush()  # C printf output sits in the C library's buffer: flush it while it still goes nowhere
-        os.dup2(saved, 1)
-        os.close(saved)
+        sys.stderr.flush()
+        _libc_fflush()  # flush the C library's buffers while they still go nowhere
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for fd in saved:
+            os.close(fd)
 
 
 def import_pybullet():
     """Import and return the ``pybullet`` module without its banner on stdout."""
     global _pybullet
     if _pybullet is None:
-        with silenced_stdout():
+        with silenced_output():
             import pybullet
 
         _pybullet = pybullet
@@ -53,7 +59,7 @@ class BulletClient:
 
     def __init__(self) -> None:
         self.pb = import_pybullet()
-        with silenced_stdout():
+        with silenced_output():
             self.client_id = self.pb.connect(self.pb.DIRECT)
         if self.client_id < 0:
             raise RuntimeError("could not start a PyBullet DIRECT client")
