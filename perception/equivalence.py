@@ -31,28 +31,41 @@ def aligned_chamfer(points_a: np.ndarray, points_b: np.ndarray, tree_a: cKDTree 
     return best
 
 
+def _within_chamfer(points_a, points_b, tree_a: cKDTree, tree_b: cKDTree, tolerance: float) -> bool:
+    """Whether :func:`aligned_chamfer` is below ``tolerance``, stopping as soon as the answer is known."""
+    for flip in _PROPER_FLIPS:
+        d_ab, _ = tree_b.query(points_a * flip)
+        one_way = float(np.mean(d_ab**2))
+        if one_way >= tolerance:
+            continue
+        d_ba, _ = tree_a.query(points_b * flip)
+        if one_way + float(np.mean(d_ba**2)) < tolerance:
+            return True
+    return False
+
+
 def equivalence_classes(points_norm: np.ndarray, extents_norm: np.ndarray,
                         extent_tolerance: float = EXTENT_TOLERANCE,
                         chamfer_tolerance: float = CHAMFER_TOLERANCE) -> np.ndarray:
     """(N,) int64 class id per part, numbered 0.. in order of first appearance.
 
     points_norm: (N, P, 3) canonical clouds, normalised units. extents_norm: (N, 3) canonical box dimensions.
-    Equivalence is made transitive by taking connected components of the pairwise relation.
+    Classes are the connected components of the pairwise relation (so equivalence is transitive); a pair already
+    connected through others is not compared again.
     """
     n = len(points_norm)
     trees = [cKDTree(p) for p in points_norm]
-    graph = nx.Graph()
-    graph.add_nodes_from(range(n))
+    graph = nx.utils.UnionFind(range(n))
     for i in range(n):
         for j in range(i + 1, n):
-            if np.all(np.abs(extents_norm[i] - extents_norm[j]) < extent_tolerance) and (
-                aligned_chamfer(points_norm[i], points_norm[j], trees[i], trees[j]) < chamfer_tolerance
-            ):
-                graph.add_edge(i, j)
+            if graph[i] == graph[j] or np.any(np.abs(extents_norm[i] - extents_norm[j]) >= extent_tolerance):
+                continue
+            if _within_chamfer(points_norm[i], points_norm[j], trees[i], trees[j], chamfer_tolerance):
+                graph.union(i, j)
     classes = np.empty(n, dtype=np.int64)
-    components = sorted(nx.connected_components(graph), key=min)
-    for class_id, members in enumerate(components):
-        classes[list(members)] = class_id
+    roots: dict[int, int] = {}
+    for i in range(n):
+        classes[i] = roots.setdefault(graph[i], len(roots))
     return classes
 
 

@@ -95,3 +95,26 @@ def test_targets_map_back_to_the_rendered_poses():
             mesh_cam.apply_translation(-sample["centre_camera_m"][k])
             mesh_cam.apply_scale(float(sample["scale_per_m"]))
             assert np.abs(mesh_cam.nearest.signed_distance(cloud_cam[:100])).max() < 1e-5
+
+
+def test_classes_match_the_all_pairs_definition_on_a_real_sample():
+    import networkx as nx
+
+    from perception.equivalence import CHAMFER_TOLERANCE, EXTENT_TOLERANCE, aligned_chamfer
+    from planning.assembly import read_assembly
+    from scenes import sample_folder
+
+    assembly = read_assembly(sample_folder("chair"))
+    parts = normalize_parts([p.mesh for p in assembly.parts])
+    graph = nx.Graph()
+    graph.add_nodes_from(range(len(parts)))
+    for i in range(len(parts)):
+        for j in range(i + 1, len(parts)):
+            if np.all(np.abs(parts.extents_norm[i] - parts.extents_norm[j]) < EXTENT_TOLERANCE) and (
+                aligned_chamfer(parts.points_norm[i], parts.points_norm[j]) < CHAMFER_TOLERANCE
+            ):
+                graph.add_edge(i, j)
+    expected = {frozenset(c) for c in nx.connected_components(graph)}
+    classes = equivalence_classes(parts.points_norm, parts.extents_norm)
+    assert {frozenset(np.flatnonzero(classes == c)) for c in np.unique(classes)} == expected
+    assert len(expected) < len(parts)  # the chair has interchangeable legs
