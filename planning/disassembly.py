@@ -1,0 +1,229 @@
+"""Assembly sequence planning by disassembly (as in ASAP, Tian et al. 2023).
+
+Starting from the full target assembly, repeatedly take out a part that
+
+1. leaves along a collision-free straight line (:mod:`planning.sweep`; the floor counts as an obstacle),
+2. leaves the rest stable: every remaining part keeps a path of contacts to the floor (parts that touch are
+   fastened once placed, standing for the connectors), and
+3. can be grasped at its target among the parts that remain (those placed before it), by a caller-given check.
+
+Reversed, this is an assembly order with an insertion direction (minus the removal direction) and a grasp per
+part. The search is depth-first with heuristics (top-most parts first, fewest contacts first), remembers
+sub-assemblies that failed, and stops at a time budget. When no sequence exists it says why, for the smallest
+sub-assembly it could not take apart: which part is blocked by which, which removal would leave parts
+unsupported, which part has no grasp.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import networkx as nx
+import numpy as np
+
+from planning.collision import ConvexPart
+from planning.contact import FLOOR, all_grounded, contact_graph, support_graph
+from planning.pose import Pose
+from planning.sweep import blocks, leaves_above_floor, travel_to_clear_m
+
+# a grasp check: (part name, names of the parts present around it, insertion direction) -> a grasp or None
+GraspCheck = Callable[[str, frozenset, np.ndarray], object | None]
+
+
+def removal_directions(extra_axes: np.ndarray | None = None) -> np.ndarray:
+    """Candidate removal directions (unit, world frame), in order of preference: up, the four horizontal axes,
+    the diagonals that rise, then ``extra_axes`` (e.g. a tilted part's own axes) and the rest of the 26 box
+    directions; straight down last (a part that must go in from below is the hardest for a robot)."""
+    preferred = [(0, 0, 1), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0)]
+    grid = [(x, y, z) for z in (1, 0, -1) for x in (-1, 0, 1) for y in (-1, 0, 1) if (x, y, z) != (0, 0, 0)]
+    grid.sort(key=lambda v: (-v[2], sum(abs(c) for c in v)))
+    ordered = [np.array(v, dtype=np.float64) for v in preferred]
+    if extra_axes is not None:
+        ordered.extend(np.asarray(extra_axes, dtype=np.float64))
+    ordered.extend(np.array(v, dtype=np.float64) for v in grid if v not in preferred and v != (0, 0, -1))
+    ordered.append(np.array([0.0, 0.0, -1.0]))
+    unique: list[np.ndarray] = []
+    for v in ordered:
+        v = v / np.linalg.norm(v)
+        if all(np.dot(v, u) < 1 - 1e-6 for u in unique):
+            unique.append(v)
+    return np.array(unique)
+
+
+@dataclass(frozen=True)
+class SequenceStep:
+    """One assembly step: ``part`` goes in along ``insertion_direction`` (unit, world frame)."""
+
+    part: str
+    insertion_direction: np.ndarray
+    grasp: object | None
+    fastened_to: tuple[str, ...]  # parts placed before it that it touches (the floor included)
+    rests_on: tuple[str, ...]  # of those, the ones it rests on under gravity
+
+
+@dataclass
+class SequenceResult:
+    """Assembly order (first placed first) or the reason there is none."""
+
+    steps: list[SequenceStep]
+    success: bool
+    reason: str = ""
+    blocking: dict[str, str] = field(default_factory=dict)  # part -> why it could not be taken out
+    seconds: float = 0.0
+    states_expanded: int = 0
+
+    @property
+    def order(self) -> list[str]:
+        return [s.part for s in self.steps]
+
+
+class _Planner:
+    def __init__(self, parts: list[ConvexPart], poses: list[Pose], grasp_check: GraspCheck | None,
+                 floor_z_m: float, time_budget_s: float) -> None:
+        self.parts = {p.name: p for p in parts}
+        self.poses = {p.name: pose for p, pose in zip(parts, poses)}
+        self.names = [p.name for p in parts]
+        self.contacts = contact_graph(parts, poses, floor_z_m)
+        self.support = support_graph(self.contacts)
+        self.grasp_check = grasp_check
+        self.floor_z_m = floor_z_m
+        self.deadline = time.perf_counter() + time_budget_s
+        self.directions = {name: removal_directions(self._own_axes(name)) for name in self.names}
+        self.top_z = {n: float(self.parts[n].bounds(self.poses[n])[1, 2]) for n in self.names}
+        self._blocked: dict[tuple[str, int, str], bool] = {}
+        self._floor_ok: dict[tuple[str, int], bool] = {}
+        self._grasps: dict[tuple, object | None] = {}
+        self.failed: set[frozenset] = set()
+        self.expanded = 0
+        self.smallest_failure: tuple[frozenset, dict[str, str]] | None = None
+        self.timed_out = False
+
+    def _own_axes(self, name: str) -> np.ndarray:
+        rotation = self.poses[name].rotation
+        axes = np.concatenate([rotation.T, -rotation.T])  # rows: the part's axes in the world frame
+        return axes[np.abs(axes[:, 2]) < 0.999]  # world +-z are in the list already
+
+    # --- the three tests ---------------------------------------------------------------------------------
+    def blocked_by(self, name: str, k: int, obstacle: str) -> bool:
+        key = (name, k, obstacle)
+        if key not in self._blocked:
+            self._blocked[key] = blocks(self.parts[name], self.poses[name], self.parts[obstacle],
+                                        self.poses[obstacle], self.directions[name][k])
+        return self._blocked[key]
+
+    def clears_floor(self, name: str, k: int, present: frozenset) -> bool:
+        key = (name, k)
+        if key not in self._floor_ok:
+            direction = self.directions[name][k]
+            moving = self.poses[name].apply(self.parts[name].vertices)
+            others = [self.poses[n].apply(self.parts[n].vertices) for n in self.names if n != name]
+            travel = max([travel_to_clear_m(moving, o, direction) for o in others] + [0.0])
+            self._floor_ok[key] = leaves_above_floor(self.parts[name], self.poses[name], direction, travel,
+                                                     self.floor_z_m)
+        return self._floor_ok[key]
+
+    def free_direction(self, name: str, present: frozenset) -> tuple[int | None, dict[int, list[str]]]:
+        """First removal direction free of the parts in ``present``, and the blockers of those tried."""
+        blockers: dict[int, list[str]] = {}
+        for k in range(len(self.directions[name])):
+            if not self.clears_floor(name, k, present):
+                blockers[k] = [FLOOR]
+                continue
+            hit = [o for o in sorted(present - {name}) if self.blocked_by(name, k, o)]
+            if not hit:
+                return k, blockers
+            blockers[k] = hit
+        return None, blockers
+
+    def grasp(self, name: str, present: frozenset, direction: np.ndarray) -> object | None:
+        if self.grasp_check is None:
+            return True
+        neighbours = frozenset(n for n in present if n != name)
+        key = (name, neighbours, tuple(np.round(direction, 6)))
+        if key not in self._grasps:
+            self._grasps[key] = self.grasp_check(name, neighbours, -direction)
+        return self._grasps[key]
+
+    # --- search -----------------------------------------------------------------------------------------
+    def candidates(self, present: frozenset) -> list[str]:
+        degree = {n: sum(1 for m in self.contacts.neighbors(n) if m in present) for n in present}
+        return sorted(present, key=lambda n: (-round(self.top_z[n], 3), degree[n], n))
+
+    def search(self, present: frozenset) -> list[tuple[str, int, object]] | None:
+        """Removal sequence (part, direction index, grasp) taking ``present`` apart, or None."""
+        if not present:
+            return []
+        if present in self.failed:
+            return None
+        if time.perf_counter() > self.deadline:
+            self.timed_out = True
+            return None
+        self.expanded += 1
+        reasons: dict[str, str] = {}
+        for name in self.candidates(present):
+            rest = present - {name}
+            if not all_grounded(self.contacts, set(rest)):
+                lost = sorted(rest - set(nx.node_connected_component(self.contacts.subgraph(rest | {FLOOR}), FLOOR)))
+                reasons[name] = f"taking it out first leaves {', '.join(lost)} without support"
+                continue
+            k, blockers = self.free_direction(name, present)
+            if k is None:
+                reasons[name] = "blocked in every direction (" + "; ".join(
+                    f"{_direction_label(self.directions[name][i])} by {', '.join(b)}"
+                    for i, b in list(blockers.items())[:6]) + ")"
+                continue
+            grasp = self.grasp(name, rest, self.directions[name][k])
+            if grasp is None:
+                reasons[name] = (f"no collision-free grasp at its target among {len(rest)} placed parts "
+                                 f"(inserted {_direction_label(-self.directions[name][k])})")
+                continue
+            tail = self.search(rest)
+            if tail is not None:
+                return [(name, k, grasp), *tail]
+            if self.timed_out:
+                return None
+        self.failed.add(present)
+        if reasons and (self.smallest_failure is None or len(present) <= len(self.smallest_failure[0])):
+            self.smallest_failure = (present, reasons)
+        return None
+
+
+def _direction_label(direction: np.ndarray) -> str:
+    names = {(0, 0, 1): "+z", (0, 0, -1): "-z", (1, 0, 0): "+x", (-1, 0, 0): "-x", (0, 1, 0): "+y", (0, -1, 0): "-y"}
+    key = tuple(int(v) for v in np.round(direction).astype(int))
+    if np.allclose(direction, key):
+        return names.get(key, str(key))
+    return "(" + ", ".join(f"{v:+.2f}" for v in direction) + ")"
+
+
+def plan_sequence(parts: list[ConvexPart], poses: list[Pose], grasp_check: GraspCheck | None = None,
+                  floor_z_m: float = 0.0, time_budget_s: float = 10.0) -> SequenceResult:
+    """Plan an assembly order for parts (convex pieces, part frames) at target poses ``assembly_from_part``.
+
+    ``grasp_check(part, parts_present, insertion_direction)`` returns a grasp or None; without it grasps are
+    not checked (``SequenceStep.grasp`` is then True).
+    """
+    start = time.perf_counter()
+    planner = _Planner(parts, poses, grasp_check, floor_z_m, time_budget_s)
+    removal = planner.search(frozenset(planner.names))
+    seconds = time.perf_counter() - start
+    if removal is None:
+        if planner.timed_out:
+            reason = f"no sequence found within the time budget of {time_budget_s:.1f} s"
+        else:
+            reason = "no part can be taken out of the assembly in any order"
+        blocking = planner.smallest_failure[1] if planner.smallest_failure else {}
+        if planner.smallest_failure and len(planner.smallest_failure[0]) < len(planner.names):
+            reason += (f"; stuck with {len(planner.smallest_failure[0])} parts left: "
+                       f"{', '.join(sorted(planner.smallest_failure[0]))}")
+        return SequenceResult([], False, reason, blocking, seconds, planner.expanded)
+    steps = []
+    placed: set[str] = set()
+    for name, k, grasp in reversed(removal):
+        touching = tuple(sorted(n for n in planner.contacts.neighbors(name) if n in placed or n == FLOOR))
+        rests_on = tuple(sorted(n for n in planner.support.predecessors(name) if n in placed or n == FLOOR))
+        steps.append(SequenceStep(name, -planner.directions[name][k], grasp, touching, rests_on))
+        placed.add(name)
+    return SequenceResult(steps, True, "", {}, seconds, planner.expanded)
