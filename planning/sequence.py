@@ -1,0 +1,168 @@
+"""Assembly sequence of an assembly folder: ``python -m planning.sequence ASSEMBLY_DIR [--poses JSON] [--json OUT]``.
+
+Prints a table (step, part, insertion direction, grasp, supporting parts) and writes it as JSON. Exit codes:
+0 a sequence was found, 3 none exists (the reason is printed), 2 bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from planning.assembly import Assembly, AssemblyError, read_assembly, read_poses
+from planning.collision import ConvexPart
+from planning.disassembly import SequenceResult, _direction_label, plan_sequence
+from planning.grasp import Grasp, antipodal_grasps, feasible_grasps
+from planning.pose import Pose
+
+HAND_REACH_M = 0.2  # parts farther than this from a part's target cannot touch the hand holding it
+
+
+def with_poses(assembly: Assembly, poses: dict[str, Pose], source: str) -> Assembly:
+    """``assembly`` with its target poses replaced by ``poses`` (every part named exactly once)."""
+    names = set(assembly.part_names)
+    missing, extra = sorted(names - set(poses)), sorted(set(poses) - names)
+    if missing or extra:
+        details = "; ".join(filter(None, [
+            f"missing parts: {', '.join(missing)}" if missing else "",
+            f"parts not in the assembly: {', '.join(extra)}" if extra else "",
+        ]))
+        raise AssemblyError(f"{source}: poses do not match the assembly's parts ({details})")
+    parts = [type(p)(p.name, p.mesh, poses[p.name], p.mesh_file) for p in assembly.parts]
+    return Assembly(assembly.name, parts, dict(assembly.metadata))
+
+
+class GraspChecker:
+    """Grasp feasibility at the target: antipodal candidates per part (computed once, part frame), checked
+    against the parts present near the target and the floor."""
+
+    def __init__(self, assembly: Assembly, seed: int = 0, floor_z_m: float = 0.0) -> None:
+        self.assembly = assembly
+        self.floor_z_m = floor_z_m
+        self.candidates: dict[str, list[Grasp]] = {}
+        for index, part in enumerate(assembly.parts):
+            self.candidates[part.name] = antipodal_grasps(part.mesh, np.random.default_rng([seed, index]))
+        self.bounds = {p.name: _world_bounds(p) for p in assembly.parts}
+
+    def __call__(self, name: str, present: frozenset, insertion_direction: np.ndarray) -> Grasp | None:
+        part = self.assembly.part(name)
+        near = [self.assembly.part(n) for n in sorted(present)
+                if _box_distance(self.bounds[name], self.bounds[n]) < HAND_REACH_M]
+        obstacles = [(p.mesh, p.assembly_from_part) for p in near]
+        feasible = feasible_grasps(self.candidates[name], part.assembly_from_part, obstacles, insertion_direction,
+                                   floor_z=self.floor_z_m)
+        return feasible[0] if feasible else None
+
+
+def _world_bounds(part) -> np.ndarray:
+    world = part.assembly_from_part.apply(part.mesh.vertices)
+    return np.stack([world.min(axis=0), world.max(axis=0)])
+
+
+def _box_distance(a: np.ndarray, b: np.ndarray) -> float:
+    gaps = np.maximum(0.0, np.maximum(b[0] - a[1], a[0] - b[1]))
+    return float(np.linalg.norm(gaps))
+
+
+def plan_assembly_sequence(assembly: Assembly, seed: int = 0, check_grasps: bool = True,
+                           time_budget_s: float = 10.0) -> SequenceResult:
+    """Assembly order of ``assembly`` at its poses (metres, +z up, floor at z = 0)."""
+    parts = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
+    poses = [p.assembly_from_part for p in assembly.parts]
+    checker = GraspChecker(assembly, seed) if check_grasps else None
+    result = plan_sequence(parts, poses, checker, time_budget_s=time_budget_s)
+    if not result.success and checker is not None:
+        graspless = [n for n, c in checker.candidates.items() if not c]
+        if graspless:
+            from planning.grasp import explain_no_grasp
+
+            result.reason += "; no grasp at all: " + "; ".join(
+                explain_no_grasp(assembly.part(n).mesh, part_name=n) for n in graspless)
+    return result
+
+
+def result_to_json(assembly: Assembly, result: SequenceResult) -> dict:
+    steps = []
+    for index, step in enumerate(result.steps, start=1):
+        grasp = step.grasp if isinstance(step.grasp, Grasp) else None
+        steps.append({
+            "step": index,
+            "part": step.part,
+            "insertion_direction": [round(float(v), 6) for v in step.insertion_direction],
+            "grasp": None if grasp is None else {
+                "part_from_tcp": grasp.part_from_tcp.to_dict(),
+                "width_m": round(grasp.width_m, 6),
+                "opening_m": round(grasp.opening_m, 6),
+                "score": round(grasp.score, 4),
+            },
+            "fastened_to": list(step.fastened_to),
+            "rests_on": list(step.rests_on),
+        })
+    return {
+        "assembly": assembly.name,
+        "success": result.success,
+        "reason": result.reason,
+        "blocking": result.blocking,
+        "seconds": round(result.seconds, 4),
+        "steps": steps,
+    }
+
+
+def format_table(assembly: Assembly, result: SequenceResult) -> str:
+    rows = [("step", "part", "insert", "grasp", "fastened to (rests on)")]
+    for index, step in enumerate(result.steps, start=1):
+        grasp = step.grasp if isinstance(step.grasp, Grasp) else None
+        if grasp is not None:
+            approach = assembly.part(step.part).assembly_from_part.rotation @ grasp.approach_part
+            grasp_text = f"{grasp.width_m * 100:.1f} cm, approach {_direction_label(approach)}"
+        else:
+            grasp_text = "-"
+        fastened = ", ".join(step.fastened_to) or "-"
+        if step.rests_on:
+            fastened += f" ({', '.join(step.rests_on)})"
+        rows.append((str(index), step.part, _direction_label(step.insertion_direction), grasp_text, fastened))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m planning.sequence", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("assembly", type=Path, help="assembly folder (assembly.json + parts/)")
+    parser.add_argument("--poses", type=Path, help="assembly.json whose poses replace the folder's")
+    parser.add_argument("--json", type=Path, help="write the sequence here")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the grasp sampling")
+    parser.add_argument("--time-budget", type=float, default=10.0, help="seconds for the search")
+    parser.add_argument("--no-grasps", action="store_true", help="skip the grasp check")
+    args = parser.parse_args(argv)
+    try:
+        assembly = read_assembly(args.assembly)
+        if args.poses is not None:
+            assembly = with_poses(assembly, read_poses(args.poses), str(args.poses))
+    except AssemblyError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    result = plan_assembly_sequence(assembly, args.seed, not args.no_grasps, args.time_budget)
+    if result.success:
+        print(f"{assembly.name}: {len(result.steps)} steps ({result.seconds:.2f} s)")
+        print(format_table(assembly, result))
+    else:
+        print(f"{assembly.name}: no assembly sequence: {result.reason}", file=sys.stderr)
+        for part, why in result.blocking.items():
+            print(f"  {part}: {why}", file=sys.stderr)
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        tmp = args.json.with_suffix(args.json.suffix + ".tmp")
+        tmp.write_text(json.dumps(result_to_json(assembly, result), indent=1) + "\n")
+        tmp.replace(args.json)
+    return 0 if result.success else 3
+
+
+if __name__ == "__main__":
+    sys.exit(main())

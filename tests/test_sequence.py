@@ -1,0 +1,196 @@
+"""Sequence planning on hand-built cases with known answers, on every procedural category and level, and the
+command line."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+from perception.synth import generate
+from planning.assembly import Assembly, AssemblyPart, write_assembly
+from planning.collision import ConvexPart, signed_distance
+from planning.contact import FLOOR, contact_graph, support_graph
+from planning.disassembly import plan_sequence
+from planning.pose import Pose
+from planning.sequence import plan_assembly_sequence
+from planning.sweep import blocks
+
+IDENTITY = [1.0, 0.0, 0.0, 0.0]
+
+
+def box_part(name, size, centre) -> AssemblyPart:
+    return AssemblyPart(name, trimesh.creation.box(size), Pose(centre, IDENTITY))
+
+
+def convex_parts(assembly: Assembly):
+    return ([ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts],
+            [p.assembly_from_part for p in assembly.parts])
+
+
+def two_box_stack(top_size=(0.06, 0.06, 0.04)) -> Assembly:
+    """A 20 x 7 x 5 cm bar on the floor, and on it a box; both graspable across 6-7 cm from above."""
+    return Assembly("stack", [
+        box_part("top", top_size, [0, 0, 0.05 + top_size[2] / 2]),
+        box_part("bottom", (0.2, 0.07, 0.05), [0, 0, 0.025]),
+    ])
+
+
+def peg_in_frame() -> Assembly:
+    """A square peg standing in a closed frame of four bars on a base plate: it can only come out upwards."""
+    bars = []
+    for sx, sy, cx, cy in [(0.12, 0.04, 0, 0.04), (0.12, 0.04, 0, -0.04), (0.04, 0.04, 0.04, 0),
+                           (0.04, 0.04, -0.04, 0)]:
+        bar = trimesh.creation.box([sx, sy, 0.04])
+        bar.apply_translation([cx, cy, 0])
+        bars.append(bar)
+    frame = trimesh.util.concatenate(bars)  # one non-convex part: four convex pieces
+    return Assembly("peg_in_frame", [
+        box_part("base", (0.2, 0.2, 0.02), [0, 0, 0.01]),
+        AssemblyPart("frame", frame, Pose([0, 0, 0.04], IDENTITY)),
+        box_part("peg", (0.04, 0.04, 0.1), [0, 0, 0.07]),
+    ])
+
+
+def chair_back() -> Assembly:
+    """Two posts shaped as U-channels open towards each other, two slats whose ends sit in the channels, and a
+    top rail across the posts' tops: the slats can only slide in from above, so the rail must come after them."""
+    def channel(opening_sign):
+        web = trimesh.creation.box([0.01, 0.05, 0.3])
+        web.apply_translation([-opening_sign * 0.015, 0, 0])
+        flanges = []
+        for y in (-0.02, 0.02):
+            flange = trimesh.creation.box([0.02, 0.01, 0.3])
+            flange.apply_translation([0.0, y, 0])
+            flanges.append(flange)
+        return trimesh.util.concatenate([web, *flanges])
+
+    parts = [
+        AssemblyPart("post_left", channel(+1), Pose([-0.1, 0, 0.15], IDENTITY)),
+        AssemblyPart("post_right", channel(-1), Pose([0.1, 0, 0.15], IDENTITY)),
+        # slats reach into the channels up to the webs (x = +-0.09) and fill the gap between the flanges
+        box_part("slat_low", (0.18, 0.03, 0.04), [0, 0, 0.1]),
+        box_part("slat_high", (0.18, 0.03, 0.04), [0, 0, 0.2]),
+        box_part("top_rail", (0.24, 0.05, 0.03), [0, 0, 0.315]),
+    ]
+    return Assembly("chair_back", parts)
+
+
+def test_touching_and_penetrating_are_told_apart():
+    parts, poses = convex_parts(two_box_stack())
+    assert signed_distance(parts[0], poses[0], parts[1], poses[1]).distance_m == pytest.approx(0.0, abs=1e-7)
+    sunk = Pose([0, 0, 0.065], IDENTITY)
+    result = signed_distance(parts[0], sunk, parts[1], poses[1])
+    assert result.distance_m == pytest.approx(-0.005, abs=1e-6)
+    np.testing.assert_allclose(result.normal_ab, [0, 0, -1], atol=1e-9)  # "top" must move up: bottom->top is -n
+    lifted = Pose([0, 0, 0.08], IDENTITY)
+    assert signed_distance(parts[0], lifted, parts[1], poses[1]).distance_m == pytest.approx(0.01, abs=1e-6)
+
+
+def test_two_box_stack_bottom_first():
+    assembly = two_box_stack()
+    parts, poses = convex_parts(assembly)
+    contacts = contact_graph(parts, poses)
+    assert {frozenset(e) for e in contacts.edges} == {frozenset(("floor", "bottom")), frozenset(("top", "bottom"))}
+    assert list(support_graph(contacts).predecessors("top")) == ["bottom"]
+    result = plan_assembly_sequence(assembly)
+    assert result.success, result.reason
+    assert result.order == ["bottom", "top"]
+    np.testing.assert_allclose(result.steps[1].insertion_direction, [0, 0, -1])
+    assert result.steps[1].rests_on == ("bottom",)
+    assert result.steps[0].fastened_to == (FLOOR,)
+
+
+def test_peg_in_closed_frame_only_goes_in_from_above():
+    assembly = peg_in_frame()
+    parts, poses = convex_parts(assembly)
+    peg, frame = parts[2], parts[1]
+    for direction in ([1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [1, 1, 0]):
+        assert blocks(peg, poses[2], frame, poses[1], np.array(direction, float) / np.linalg.norm(direction))
+    assert not blocks(peg, poses[2], frame, poses[1], np.array([0.0, 0.0, 1.0]))
+    result = plan_sequence(parts, poses)
+    assert result.success, result.reason
+    assert result.order == ["base", "frame", "peg"]
+    np.testing.assert_allclose(result.steps[2].insertion_direction, [0, 0, -1])
+
+
+def test_chair_back_top_rail_after_slats():
+    assembly = chair_back()
+    parts, poses = convex_parts(assembly)
+    result = plan_sequence(parts, poses)
+    assert result.success, result.reason
+    order = result.order
+    assert order.index("top_rail") > order.index("slat_low")
+    assert order.index("top_rail") > order.index("slat_high")
+    for step in result.steps:
+        if step.part.startswith("slat"):
+            np.testing.assert_allclose(step.insertion_direction, [0, 0, -1])  # the channels allow nothing else
+
+
+def test_part_without_grasp_is_named():
+    assembly = two_box_stack(top_size=(0.1, 0.1, 0.1))  # a 10 cm cube on top: the hand opens 8 cm
+    result = plan_assembly_sequence(assembly)
+    assert not result.success
+    assert "top" in result.blocking and "grasp" in result.blocking["top"]
+    assert "top" in result.reason and "8 cm" in result.reason
+
+
+def test_blocked_everywhere_is_explained():
+    # a box shut inside a closed housing (floor, four walls, lid as one part): neither can leave the other
+    walls = []
+    for size, centre in [((0.2, 0.14, 0.02), (0, 0, 0.01)), ((0.2, 0.02, 0.1), (0, 0.06, 0.07)),
+                         ((0.2, 0.02, 0.1), (0, -0.06, 0.07)), ((0.02, 0.1, 0.1), (0.09, 0, 0.07)),
+                         ((0.02, 0.1, 0.1), (-0.09, 0, 0.07)), ((0.2, 0.14, 0.02), (0, 0, 0.13))]:
+        wall = trimesh.creation.box(size)
+        wall.apply_translation(centre)
+        walls.append(wall)
+    assembly = Assembly("boxed", [
+        box_part("inner", (0.05, 0.05, 0.05), [0, 0, 0.045]),
+        AssemblyPart("housing", trimesh.util.concatenate(walls), Pose([0, 0, 0], IDENTITY)),
+    ])
+    parts, poses = convex_parts(assembly)
+    result = plan_sequence(parts, poses)
+    assert not result.success
+    assert "blocked in every direction" in result.blocking["inner"] and "housing" in result.blocking["inner"]
+    assert "inner" in result.blocking["housing"]
+
+
+@pytest.mark.parametrize("category", ["chair", "table", "cabinet"])
+@pytest.mark.parametrize("level", ["3", "mixed"])
+def test_procedural_objects_have_a_sequence(category, level):
+    for seed in range(3):
+        assembly = generate(category, level, np.random.default_rng([77, seed]), f"{category}_{seed}")
+        result = plan_assembly_sequence(assembly, seed=seed)
+        assert result.success, (assembly.name, assembly.metadata["variant"], result.reason, result.blocking)
+        assert sorted(result.order) == sorted(assembly.part_names)
+        assert all(s.grasp is not None for s in result.steps)
+
+
+def test_command_line(tmp_path):
+    folder = write_assembly(two_box_stack(), tmp_path / "stack")
+    out = tmp_path / "sequence.json"
+    ok = subprocess.run([sys.executable, "-m", "planning.sequence", str(folder), "--json", str(out)],
+                        capture_output=True, text=True)
+    assert ok.returncode == 0, ok.stderr
+    assert "bottom" in ok.stdout and "insert" in ok.stdout
+    data = json.loads(out.read_text())
+    assert [s["part"] for s in data["steps"]] == ["bottom", "top"] and data["success"]
+
+    graspless = write_assembly(two_box_stack(top_size=(0.1, 0.1, 0.1)), tmp_path / "cube")
+    none = subprocess.run([sys.executable, "-m", "planning.sequence", str(graspless)], capture_output=True,
+                          text=True)
+    assert none.returncode == 3
+    assert "top" in none.stderr and "Traceback" not in none.stderr
+
+    bad = subprocess.run([sys.executable, "-m", "planning.sequence", str(tmp_path / "missing")],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "does not exist" in bad.stderr
+
+    poses = json.loads((folder / "assembly.json").read_text())
+    poses["parts"] = poses["parts"][:1]
+    (tmp_path / "poses.json").write_text(json.dumps(poses))
+    wrong = subprocess.run([sys.executable, "-m", "planning.sequence", str(folder), "--poses",
+                            str(tmp_path / "poses.json")], capture_output=True, text=True)
+    assert wrong.returncode == 2 and "missing parts: bottom" in wrong.stderr
