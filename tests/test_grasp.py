@@ -1,0 +1,354 @@
+"""Panda hand geometry and antipodal grasps: real meshes, real FCL, seeded."""
+
+import glob
+import math
+import os
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import fcl
+import numpy as np
+import pytest
+import trimesh
+
+from planning import gripper as hand
+from planning.assembly import read_assembly
+from planning.grasp import (
+    MAX_GRASP_WIDTH_M,
+    NoGraspError,
+    ObstacleSet,
+    antipodal_grasps,
+    explain_no_grasp,
+    feasible_grasps,
+    rank,
+)
+from planning.pose import Pose
+
+REPO = Path(__file__).resolve().parents[1]
+FURNITURE = REPO.parent / "shared" / "furniture"
+IDENTITY_Q = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+# --- an FCL model of the hand built here from the URDF, independently of planning.gripper's posing code ---------
+
+
+def _convex(vertices, faces):
+    flat = np.concatenate([[3, *f] for f in faces]).astype(np.int64)
+    return fcl.Convex(np.asarray(vertices, dtype=np.float64), len(faces), flat)
+
+
+def _hand_pieces(world_from_tcp: Pose, opening: float) -> list[tuple[np.ndarray, Pose]]:
+    """(hull vertices in link frame, world_from_link) for hand, left and right finger, from the URDF numbers."""
+    geo = hand.load_hand_geometry()
+    world_from_hand = world_from_tcp @ hand.HAND_FROM_TCP.inverse()
+    z = geo.finger_joint_z_m
+    half_turn = np.array([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])
+    return [
+        (geo.hand_vertices, world_from_hand),
+        (geo.finger_vertices, world_from_hand @ Pose(np.array([0.0, opening / 2, z]), IDENTITY_Q)),
+        (geo.finger_vertices, world_from_hand @ Pose.from_rotation(half_turn, [0.0, -opening / 2, z])),
+    ]
+
+
+def hand_hits(world_from_tcp: Pose, opening: float, mesh: trimesh.Trimesh, world_from_mesh: Pose) -> bool:
+    """FCL convex pieces against the mesh's BVH, plus any hull vertex inside the (watertight) mesh."""
+    geo = hand.load_hand_geometry()
+    model = fcl.BVHModel()
+    model.beginModel(len(mesh.vertices), len(mesh.faces))
+    model.addSubModel(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64))
+    model.endModel()
+    target = fcl.CollisionObject(model, world_from_mesh.to_fcl())
+    faces = (geo.hand_faces, geo.finger_faces, geo.finger_faces)
+    mesh_from_world = world_from_mesh.inverse()
+    for (vertices, world_from_link), f in zip(_hand_pieces(world_from_tcp, opening), faces):
+        obj = fcl.CollisionObject(_convex(vertices, f), world_from_link.to_fcl())
+        if fcl.collide(obj, target, fcl.CollisionRequest(), fcl.CollisionResult()):
+            return True
+        if np.any(mesh.contains(mesh_from_world.apply(world_from_link.apply(vertices)))):
+            return True
+    return False
+
+
+def hand_min_z(world_from_tcp: Pose, opening: float) -> float:
+    return min(float(pose.apply(v)[:, 2].min()) for v, pose in _hand_pieces(world_from_tcp, opening))
+
+
+def box_at(extents, centre) -> tuple[trimesh.Trimesh, Pose]:
+    return trimesh.creation.box(extents), Pose(np.asarray(centre, dtype=np.float64), IDENTITY_Q)
+
+
+# --- the hand -------------------------------------------------------------------------------------------------------
+
+
+def test_constants_match_the_urdf():
+    geo = hand.load_hand_geometry()
+    root = ET.parse(hand.panda_urdf_path()).getroot()
+    joints = {j.get("name"): j for j in root.findall("joint")}
+    tcp_xyz = [float(v) for v in joints["panda_grasptarget_hand"].find("origin").get("xyz").split()]
+    assert tcp_xyz == [0.0, 0.0, hand.TCP_Z_IN_HAND_M]
+    np.testing.assert_allclose(hand.HAND_FROM_TCP.position, tcp_xyz)
+    np.testing.assert_allclose(hand.HAND_FROM_TCP.quat_wxyz, IDENTITY_Q)
+    assert geo.finger_travel_m == hand.FINGER_TRAVEL_M and hand.MAX_OPENING_M == pytest.approx(0.08)
+    assert geo.finger_joint_z_m == pytest.approx(hand.FINGER_JOINT_Z_IN_HAND_M)
+    assert geo.fingertip_z_m == pytest.approx(hand.FINGERTIP_Z_IN_HAND_M, abs=5e-4)
+    assert geo.palm_z_m == pytest.approx(hand.PALM_Z_IN_HAND_M, abs=5e-4)
+    pad = geo.pad_vertices()
+    assert np.ptp(pad[:, 2]) == pytest.approx(hand.FINGER_PAD_LENGTH_M, abs=5e-4)
+    assert np.ptp(pad[:, 0]) == pytest.approx(hand.FINGER_PAD_WIDTH_M, abs=5e-4)
+    tip = geo.finger_vertices[geo.finger_vertices[:, 2] >= pad[:, 2].min() - 1e-6]
+    assert tip[:, 1].max() == pytest.approx(hand.FINGER_PAD_DEPTH_M, abs=5e-4)
+    pad_z_in_tcp = geo.finger_joint_z_m + np.array([pad[:, 2].min(), pad[:, 2].max()]) - hand.TCP_Z_IN_HAND_M
+    np.testing.assert_allclose(pad_z_in_tcp, hand.PAD_Z_RANGE_IN_TCP_M, atol=5e-4)
+    assert hand.USABLE_FINGER_DEPTH_M == pytest.approx(0.0462, abs=5e-4)
+    assert hand.PAD_Z_RANGE_IN_TCP_M[0] < 0.0 < hand.PAD_Z_RANGE_IN_TCP_M[1]  # the TCP lies on the pads
+
+
+def test_collision_model_places_the_pads_at_the_opening():
+    model = hand.default_gripper()
+    for opening in (0.0, 0.03, 0.08):
+        pieces = model.tcp_from_pieces(opening)
+        left = model.piece_vertices()[1] @ pieces[1, :3, :3].T + pieces[1, :3, 3]
+        right = model.piece_vertices()[2] @ pieces[2, :3, :3].T + pieces[2, :3, 3]
+        assert left[:, 1].min() == pytest.approx(opening / 2, abs=2e-4)
+        assert right[:, 1].max() == pytest.approx(-opening / 2, abs=2e-4)
+        assert left[:, 2].max() == pytest.approx(hand.FINGERTIP_Z_IN_HAND_M - hand.TCP_Z_IN_HAND_M, abs=5e-4)
+    # the model agrees with the test's own construction of the hand
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=4)
+    pose = Pose(rng.normal(size=3), q)
+    ours = np.concatenate([p.apply(v) for v, p in _hand_pieces(pose, 0.05)])
+    np.testing.assert_allclose(model.vertices(pose, 0.05), ours, atol=1e-12)
+
+
+def test_frames_agree_with_pybullet():
+    from cell.bullet import BulletClient
+
+    rng = np.random.default_rng(5)
+    with BulletClient() as sim:
+        pb, cid = sim.pb, sim.client_id
+        robot = pb.loadURDF(hand.panda_urdf_path(), useFixedBase=True, physicsClientId=cid)
+        names = {pb.getJointInfo(robot, j, physicsClientId=cid)[12].decode(): j for j in range(11 + 1)}
+        model = hand.default_gripper()
+        for _ in range(3):
+            opening = float(rng.uniform(0.0, 0.08))
+            for j in range(7):
+                pb.resetJointState(robot, j, float(rng.uniform(-1.5, 1.5)), physicsClientId=cid)
+            for j in (9, 10):
+                pb.resetJointState(robot, j, opening / 2, physicsClientId=cid)
+
+            def link_pose(name):
+                state = pb.getLinkState(robot, names[name], computeForwardKinematics=True, physicsClientId=cid)
+                return Pose.from_pybullet(state[4], state[5])  # the URDF link frame
+
+            world_from_tcp = link_pose("panda_hand") @ hand.HAND_FROM_TCP
+            assert world_from_tcp.is_close(link_pose("panda_grasptarget"), 1e-6, 1e-6)
+            pieces = world_from_tcp.matrix() @ model.tcp_from_pieces(opening)
+            np.testing.assert_allclose(pieces[1], link_pose("panda_leftfinger").matrix(), atol=1e-6)
+            np.testing.assert_allclose(pieces[2, :3, 3], link_pose("panda_rightfinger").position, atol=1e-6)
+            for k, name in ((1, "panda_leftfinger"), (2, "panda_rightfinger")):
+                ours = model.piece_vertices()[k] @ pieces[k, :3, :3].T + pieces[k, :3, 3]
+                lo, hi = (np.array(v) for v in pb.getAABB(robot, names[name], physicsClientId=cid))
+                # PyBullet's box is its local box turned with the link, so looser than ours, never tighter
+                assert np.all(ours.min(axis=0) >= lo - 1e-4) and np.all(ours.max(axis=0) <= hi + 1e-4)
+                assert np.all(ours.max(axis=0) - ours.min(axis=0) >= 0.6 * (hi - lo))
+
+
+# --- candidates on single parts -------------------------------------------------------------------------------------
+
+
+def test_bar_is_grasped_across_its_thin_dimension():
+    bar = trimesh.creation.box((0.03, 0.03, 0.30))
+    grasps = antipodal_grasps(bar, np.random.default_rng(0))
+    assert len(grasps) >= 20
+    for g in grasps:
+        assert g.width_m == pytest.approx(0.03, abs=1e-6)
+        axis = g.closing_axis_part
+        assert abs(axis[2]) < 1e-6 and max(abs(axis[0]), abs(axis[1])) == pytest.approx(1.0)
+        tcp = g.part_from_tcp.position
+        np.testing.assert_allclose(tcp, g.contacts_part.mean(axis=0), atol=1e-9)
+        np.testing.assert_allclose(g.contacts_part[1] - g.contacts_part[0], g.width_m * axis, atol=1e-9)
+        assert np.all(np.abs(g.contacts_part[:, :2]).max(axis=1) == pytest.approx(0.015, abs=1e-6))
+        assert g.opening_m == pytest.approx(0.04)
+    for g in grasps[:30]:
+        assert not hand_hits(g.part_from_tcp, g.opening_m, bar, Pose.identity())
+    world_from_bar = Pose(np.array([0.4, 0.1, 0.015]), np.array([0.5, 0.5, 0.5, 0.5]))
+    g = grasps[0]
+    assert (g.world_from_hand(world_from_bar) @ hand.HAND_FROM_TCP).is_close(g.world_from_tcp(world_from_bar), 1e-12)
+    scores = [g.score for g in grasps]
+    assert scores == sorted(scores, reverse=True)
+    assert grasps[0].contact_score == 1.0 and grasps[0].centroid_score > 0.8
+
+
+def test_same_seed_same_grasps():
+    bar = trimesh.creation.box((0.03, 0.03, 0.30))
+    a = antipodal_grasps(bar, np.random.default_rng(7))
+    b = antipodal_grasps(bar.copy(), np.random.default_rng(7))  # a different object with the same content
+    assert len(a) == len(b)
+    for ga, gb in zip(a, b):
+        assert ga.part_from_tcp.is_close(gb.part_from_tcp) and ga.score == gb.score
+
+
+def test_cube_too_thick_for_the_hand():
+    cube = trimesh.creation.box((0.1, 0.1, 0.1))
+    assert antipodal_grasps(cube, np.random.default_rng(0)) == []
+    message = explain_no_grasp(cube, part_name="cube")
+    assert "10.0 cm thick" in message and "8 cm" in message
+    with pytest.raises(NoGraspError, match="10.0 cm thick"):
+        antipodal_grasps(cube, np.random.default_rng(0), strict=True, part_name="cube")
+    assert issubclass(NoGraspError, ValueError)
+
+
+def test_thin_board_is_grasped_at_an_edge():
+    half = np.array([0.10, 0.075, 0.009])
+    board = trimesh.creation.box(2 * half)
+    grasps = antipodal_grasps(board, np.random.default_rng(0))
+    assert len(grasps) >= 10
+    for g in grasps:
+        assert g.width_m == pytest.approx(0.018, abs=1e-6)
+        assert abs(g.closing_axis_part[2]) == pytest.approx(1.0)
+        # walk back from the TCP towards the hand: the board's edge comes before the palm
+        tcp, back = g.part_from_tcp.position, -g.approach_part
+        exits = [(np.sign(b) * half[i] - tcp[i]) / b for i, b in enumerate(back[:2]) if abs(b) > 1e-9]
+        assert 0.0 < min(exits) <= hand.TCP_TO_PALM_M + 1e-6
+    assert grasps[0].contact_score == 1.0
+    for g in grasps[:10]:
+        assert not hand_hits(g.part_from_tcp, g.opening_m, board, Pose.identity())
+
+
+def test_round_leg_has_grasps():
+    leg = trimesh.creation.cylinder(radius=0.015, height=0.30, sections=32)
+    grasps = antipodal_grasps(leg, np.random.default_rng(0))
+    assert len(grasps) >= 20
+    for g in grasps:
+        assert g.width_m == pytest.approx(0.03, abs=5e-4)
+        assert abs(g.closing_axis_part[2]) < 0.05
+    for g in grasps[:10]:
+        assert not hand_hits(g.part_from_tcp, g.opening_m, leg, Pose.identity())
+
+
+def test_sealed_hollow_box_explains_the_collisions():
+    outer, inner = trimesh.creation.box((0.2, 0.2, 0.2)), trimesh.creation.box((0.18, 0.18, 0.18))
+    inner.invert()  # a closed shell with 1 cm walls: every antipodal pair is across a wall the fingers cannot reach
+    shell = trimesh.util.concatenate([outer, inner])
+    assert antipodal_grasps(shell, np.random.default_rng(0)) == []
+    message = explain_no_grasp(shell, part_name="shell")
+    assert "antipodal contact pairs fit between the fingers" in message and "collide" in message
+
+
+def test_model_collides_agrees_with_independent_check():
+    bar = trimesh.creation.box((0.03, 0.03, 0.30))
+    model = hand.default_gripper()
+    bvh = fcl.CollisionObject(hand.mesh_to_fcl(bar), fcl.Transform())
+    rng = np.random.default_rng(3)
+    verdicts = []
+    for _ in range(40):
+        pose = Pose(rng.uniform(-0.08, 0.08, size=3), rng.normal(size=4))
+        opening = float(rng.uniform(0.0, 0.08))
+        expected = hand_hits(pose, opening, bar, Pose.identity())
+        assert model.collides(pose, opening, bvh, bar, Pose.identity()) == expected
+        verdicts.append(expected)
+    assert any(verdicts) and not all(verdicts)
+
+
+def test_width_limit():
+    assert MAX_GRASP_WIDTH_M == pytest.approx(0.075)
+    ok = trimesh.creation.box((0.07, 0.2, 0.2))
+    too_wide = trimesh.creation.box((0.078, 0.2, 0.2))
+    assert all(g.width_m == pytest.approx(0.07) for g in antipodal_grasps(ok, np.random.default_rng(0)))
+    assert antipodal_grasps(too_wide, np.random.default_rng(0)) == []
+    assert "7.8 cm thick" in explain_no_grasp(too_wide)
+
+
+# --- in the world ---------------------------------------------------------------------------------------------------
+
+
+def test_feasible_grasps_avoid_the_neighbour_and_the_floor():
+    part, world_from_part = box_at((0.04, 0.04, 0.06), (0.0, 0.0, 0.03))  # standing on the floor
+    neighbour, world_from_neighbour = box_at((0.06, 0.06, 0.06), (0.055, 0.0, 0.03))  # 5 mm gap in +x
+    candidates = antipodal_grasps(part, np.random.default_rng(0))
+    feasible = feasible_grasps(candidates, world_from_part, [(neighbour, world_from_neighbour)], None, floor_z=0.0)
+    assert 0 < len(feasible) < len(candidates)
+    kept = {id(g.part_from_tcp) for g in feasible}
+    removed = [g for g in candidates if id(g.part_from_tcp) not in kept]
+    for g in feasible:
+        world_from_tcp = world_from_part @ g.part_from_tcp
+        assert not hand_hits(world_from_tcp, g.opening_m, neighbour, world_from_neighbour)
+        assert hand_min_z(world_from_tcp, g.opening_m) >= 0.0
+    into_neighbour = below_floor = 0
+    for g in removed:
+        world_from_tcp = world_from_part @ g.part_from_tcp
+        hits = hand_hits(world_from_tcp, g.opening_m, neighbour, world_from_neighbour)
+        low = hand_min_z(world_from_tcp, g.opening_m) < 0.001
+        assert hits or low  # nothing removed without a reason
+        into_neighbour += hits
+        below_floor += low
+    assert into_neighbour > 0 and below_floor > 0
+    # closing across x would put a finger into the neighbour
+    assert all(abs(g.closing_axis_part[0]) < 0.5 for g in feasible)
+    scores = [g.score for g in feasible]
+    assert scores == sorted(scores, reverse=True)
+
+
+def test_leg_inserted_downwards_is_not_held_from_below():
+    leg = trimesh.creation.box((0.03, 0.03, 0.30))
+    world_from_leg = Pose(np.array([0.0, 0.0, 0.20]), IDENTITY_Q)  # its foot 5 cm above the floor, going down
+    down = np.array([0.0, 0.0, -1.0])
+    candidates = antipodal_grasps(leg, np.random.default_rng(0))
+    assert any(g.approach_part[2] > 0.5 for g in candidates)  # grasps from below exist on the part
+    for obstacles in ([], [box_at((0.2, 0.2, 0.02), (0.0, 0.0, 0.36))]):  # free top end, then a plate on top
+        feasible = feasible_grasps(candidates, world_from_leg, obstacles, down, floor_z=0.0)
+        assert feasible
+        approach = world_from_leg.rotation @ feasible[0].approach_part
+        assert approach[2] <= 1e-9  # from above or the side
+        assert all((world_from_leg.rotation @ g.approach_part) @ down >= -0.3 for g in feasible)
+    # with the top end free the best grasp comes down onto it (within 30 degrees of vertical)
+    best = feasible_grasps(candidates, world_from_leg, [], down, floor_z=0.0)[0]
+    assert (world_from_leg.rotation @ best.approach_part)[2] <= -math.cos(math.radians(30)) + 1e-9
+    # reversing the motion reverses the preference
+    up_best = rank(candidates, world_from_leg, -down)[0]
+    assert (world_from_leg.rotation @ up_best.approach_part)[2] > 0.5
+
+
+def test_obstacle_set_reuse_matches_list():
+    part, world_from_part = box_at((0.03, 0.03, 0.2), (0.0, 0.0, 0.1))
+    others = [box_at((0.05, 0.05, 0.05), (0.05 * k, 0.04, 0.025)) for k in range(-2, 3)]
+    candidates = antipodal_grasps(part, np.random.default_rng(1))
+    a = feasible_grasps(candidates, world_from_part, others, np.array([0.0, 0.0, -1.0]))
+    b = feasible_grasps(candidates, world_from_part, ObstacleSet(others), np.array([0.0, 0.0, -1.0]))
+    assert [g.score for g in a] == [g.score for g in b] and len(a) > 0
+
+
+def test_bad_inputs_name_the_culprit():
+    bar = trimesh.creation.box((0.03, 0.03, 0.3))
+    grasps = antipodal_grasps(bar, np.random.default_rng(0))
+    with pytest.raises(ValueError, match="insertion_direction_world"):
+        feasible_grasps(grasps, Pose.identity(), [], np.zeros(3))
+    with pytest.raises(TypeError, match="obstacle 0"):
+        feasible_grasps(grasps, Pose.identity(), [(bar, np.eye(4))], None)
+
+
+# --- sample objects -------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("scene", ["chair", "table", "cabinet"])
+def test_every_sample_part_has_a_grasp(scene):
+    assembly = read_assembly(REPO / "scenes" / scene)
+    for part in assembly.parts:
+        grasps = antipodal_grasps(part.mesh, np.random.default_rng(0))
+        assert grasps, f"{scene}/{part.name}: {explain_no_grasp(part.mesh, part_name=part.name)}"
+
+
+@pytest.mark.skipif(not FURNITURE.is_dir(), reason="shared furniture not present")
+def test_real_furniture_summary(capsys):
+    missing, total = [], 0
+    for folder in sorted(glob.glob(str(FURNITURE / "*" / "assembly.json"))):
+        assembly = read_assembly(os.path.dirname(folder))
+        for part in assembly.parts:
+            total += 1
+            if not antipodal_grasps(part.mesh, np.random.default_rng(0), max_candidates=5):
+                missing.append(f"{assembly.name}/{part.name}: {explain_no_grasp(part.mesh, part_name=part.name)}")
+    with capsys.disabled():
+        print(f"\nreal furniture: {len(missing)} of {total} parts have no grasp")
+        for line in missing:
+            print("  " + line)
+    assert total > 0
