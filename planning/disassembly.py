@@ -23,10 +23,12 @@ from dataclasses import dataclass, field
 import networkx as nx
 import numpy as np
 
-from planning.collision import ConvexPart
+from planning.collision import ConvexPart, box_gap
 from planning.contact import FLOOR, all_grounded, contact_graph, support_graph
 from planning.pose import Pose
 from planning.sweep import blocks, leaves_above_floor, travel_to_clear_m
+
+MAX_DIRECTIONS_PER_GRASP = 4  # free insertion directions tried for a grasp before giving up on a part
 
 # a grasp check: (part name, names of the parts present around it, insertion direction) -> a grasp or None
 GraspCheck = Callable[[str, frozenset, np.ndarray], object | None]
@@ -92,6 +94,8 @@ class _Planner:
         self.deadline = time.perf_counter() + time_budget_s
         self.directions = {name: removal_directions(self._own_axes(name)) for name in self.names}
         self.top_z = {n: float(self.parts[n].bounds(self.poses[n])[1, 2]) for n in self.names}
+        bounds = {n: self.parts[n].bounds(self.poses[n]) for n in self.names}
+        self.gap = {a: {b: float(box_gap(bounds[a], bounds[b])) for b in self.names} for a in self.names}
         self._blocked: dict[tuple[str, int, str], bool] = {}
         self._floor_ok: dict[tuple[str, int], bool] = {}
         self._grasps: dict[tuple, object | None] = {}
@@ -124,18 +128,25 @@ class _Planner:
                                                      self.floor_z_m)
         return self._floor_ok[key]
 
-    def free_direction(self, name: str, present: frozenset) -> tuple[int | None, dict[int, list[str]]]:
-        """First removal direction free of the parts in ``present``, and the blockers of those tried."""
+    def free_directions(self, name: str, present: frozenset,
+                        limit: int) -> tuple[list[int], dict[int, list[str]]]:
+        """Up to ``limit`` removal directions free of the parts in ``present`` (in order of preference), and for
+        each direction tried and found blocked, the first blocker found (nearest parts are tried first)."""
+        free: list[int] = []
         blockers: dict[int, list[str]] = {}
+        obstacles = sorted(present - {name}, key=lambda o: (self.gap[name][o], o))
         for k in range(len(self.directions[name])):
             if not self.clears_floor(name, k, present):
                 blockers[k] = [FLOOR]
                 continue
-            hit = [o for o in sorted(present - {name}) if self.blocked_by(name, k, o)]
-            if not hit:
-                return k, blockers
-            blockers[k] = hit
-        return None, blockers
+            hit = next((o for o in obstacles if self.blocked_by(name, k, o)), None)
+            if hit is not None:
+                blockers[k] = [hit]
+                continue
+            free.append(k)
+            if len(free) >= limit:
+                break
+        return free, blockers
 
     def grasp(self, name: str, present: frozenset, direction: np.ndarray) -> object | None:
         if self.grasp_check is None:
@@ -168,16 +179,21 @@ class _Planner:
                 lost = sorted(rest - set(nx.node_connected_component(self.contacts.subgraph(rest | {FLOOR}), FLOOR)))
                 reasons[name] = f"taking it out first leaves {', '.join(lost)} without support"
                 continue
-            k, blockers = self.free_direction(name, present)
-            if k is None:
+            free, blockers = self.free_directions(name, present, MAX_DIRECTIONS_PER_GRASP)
+            if not free:
                 reasons[name] = "blocked in every direction (" + "; ".join(
                     f"{_direction_label(self.directions[name][i])} by {', '.join(b)}"
                     for i, b in list(blockers.items())[:6]) + ")"
                 continue
-            grasp = self.grasp(name, rest, self.directions[name][k])
+            tried = free
+            grasp, k = None, tried[0]
+            for k in tried:
+                grasp = self.grasp(name, rest, self.directions[name][k])
+                if grasp is not None:
+                    break
             if grasp is None:
                 reasons[name] = (f"no collision-free grasp at its target among {len(rest)} placed parts "
-                                 f"(inserted {_direction_label(-self.directions[name][k])})")
+                                 f"(inserted {', '.join(_direction_label(-self.directions[name][i]) for i in tried)})")
                 continue
             tail = self.search(rest)
             if tail is not None:

@@ -17,7 +17,7 @@ PyBullet (x-first quaternions), python-fcl (w-first, ``fcl.Transform``), scipy (
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -127,6 +127,7 @@ class Pose:
 
     position: np.ndarray
     quat_wxyz: np.ndarray
+    _rotation: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         position = np.asarray(self.position, dtype=np.float64).reshape(3)
@@ -134,6 +135,9 @@ class Pose:
             raise ValueError(f"pose position {position.tolist()} is not finite")
         object.__setattr__(self, "position", position)
         object.__setattr__(self, "quat_wxyz", quat_normalize(self.quat_wxyz))
+        rotation = quat_to_matrix(self.quat_wxyz)
+        rotation.flags.writeable = False
+        object.__setattr__(self, "_rotation", rotation)  # computed once: poses are immutable
 
     # --- construction -------------------------------------------------------------------------------------
     @staticmethod
@@ -170,8 +174,8 @@ class Pose:
     # --- algebra ------------------------------------------------------------------------------------------
     @property
     def rotation(self) -> np.ndarray:
-        """(3, 3) rotation matrix."""
-        return quat_to_matrix(self.quat_wxyz)
+        """(3, 3) rotation matrix (read-only)."""
+        return self._rotation
 
     def matrix(self) -> np.ndarray:
         """(4, 4) homogeneous transform."""

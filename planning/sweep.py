@@ -19,7 +19,7 @@ from planning.collision import ConvexPart, signed_distance
 from planning.pose import Pose
 
 PENETRATION_TOLERANCE_M = 0.0005
-CONTACT_STEP_M = 0.002
+CONTACT_STEP_M = 0.004  # below the 5 mm + 5 mm two thin parts need to pass through each other unseen
 CLEARANCE_MARGIN_M = 0.005  # travel beyond the last overlap of extents before a part counts as removed
 _CUTOFF_M = 0.05  # piece pairs farther apart than this are not measured (their box gap bounds the distance)
 
