@@ -16,6 +16,7 @@ import numpy as np
 from planning.assembly import Assembly, AssemblyError, read_assembly, read_poses
 from planning.collision import ConvexPart
 from planning.disassembly import SequenceResult, _direction_label, plan_sequence
+from planning.fixture import PAD_HEIGHT_M, fixture_pads
 from planning.grasp import Grasp, antipodal_grasps, feasible_grasps
 from planning.pose import Pose
 
@@ -38,23 +39,25 @@ def with_poses(assembly: Assembly, poses: dict[str, Pose], source: str) -> Assem
 
 class GraspChecker:
     """Grasp feasibility at the target: antipodal candidates per part (computed once, part frame), checked
-    against the parts present near the target and the floor."""
+    against the parts present near the target, the fixture pads (:mod:`planning.fixture`) and the cell's table
+    under them."""
 
-    def __init__(self, assembly: Assembly, seed: int = 0, floor_z_m: float = 0.0) -> None:
+    def __init__(self, assembly: Assembly, seed: int = 0) -> None:
         self.assembly = assembly
-        self.floor_z_m = floor_z_m
         self.candidates: dict[str, list[Grasp]] = {}
         for index, part in enumerate(assembly.parts):
             self.candidates[part.name] = antipodal_grasps(part.mesh, np.random.default_rng([seed, index]))
         self.bounds = {p.name: _world_bounds(p) for p in assembly.parts}
+        self.pads = fixture_pads(assembly.part_names, assembly.meshes_in_assembly_frame())
+        self.pad_obstacles = [(pad.mesh(), pad.assembly_from_pad) for pad in self.pads]
 
     def __call__(self, name: str, present: frozenset, insertion_direction: np.ndarray) -> Grasp | None:
         part = self.assembly.part(name)
         near = [self.assembly.part(n) for n in sorted(present)
                 if _box_distance(self.bounds[name], self.bounds[n]) < HAND_REACH_M]
-        obstacles = [(p.mesh, p.assembly_from_part) for p in near]
+        obstacles = [(p.mesh, p.assembly_from_part) for p in near] + self.pad_obstacles
         feasible = feasible_grasps(self.candidates[name], part.assembly_from_part, obstacles, insertion_direction,
-                                   floor_z=self.floor_z_m)
+                                   floor_z=-PAD_HEIGHT_M)
         return feasible[0] if feasible else None
 
 
