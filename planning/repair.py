@@ -1,0 +1,132 @@
+"""Repair of predicted poses: align near-parallel faces, snap near-contacts into contact, resolve
+interpenetration, without moving any part by more than a bound.
+
+Predicted assemblies have parts floating a few millimetres apart or sunk into each other (the paper's main
+failure). The repair, all in the assembly frame (metres, +z up, floor at z = 0):
+
+1. **Align**: furniture is built along three axes, so a part whose own axes lie within
+   ``align_tolerance_deg`` of the assembly axes is rotated onto them (its near-parallel faces become parallel).
+2. **Contacts**: a few rounds of pairwise corrections along the contact normal (signed distances between convex
+   pieces, :mod:`planning.collision`): a penetrating pair is pushed apart, a pair with a gap below
+   ``snap_distance_m`` is pulled together; the floor is fixed, parts near it are set on it. Each correction is
+   shared between the two parts.
+3. **Bound**: a part's total displacement is clamped to ``max_translation_m`` and its rotation to
+   ``max_rotation_deg``; the report says how far each part moved.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from planning.collision import ConvexPart, signed_distance
+from planning.pose import Pose, matrix_to_quat, quat_angle_rad
+
+
+@dataclass(frozen=True)
+class RepairSettings:
+    align_tolerance_deg: float = 8.0
+    snap_distance_m: float = 0.01
+    penetration_tolerance_m: float = 0.0005
+    max_translation_m: float = 0.03
+    max_rotation_deg: float = 10.0
+    iterations: int = 40
+
+
+@dataclass(frozen=True)
+class RepairReport:
+    """How far each part moved (metres, degrees), and the contacts before and after."""
+
+    translation_m: dict[str, float]
+    rotation_deg: dict[str, float]
+    deepest_penetration_before_m: float
+    deepest_penetration_after_m: float
+
+
+def snap_rotation_to_axes(rotation: np.ndarray, tolerance_deg: float) -> np.ndarray:
+    """The signed permutation matrix nearest to ``rotation`` if within ``tolerance_deg`` of it, else ``rotation``."""
+    snapped = np.zeros((3, 3))
+    for column in range(3):
+        row = int(np.argmax(np.abs(rotation[:, column])))
+        snapped[row, column] = np.sign(rotation[row, column])
+    if not np.allclose(np.abs(snapped).sum(axis=0), 1) or not np.allclose(np.abs(snapped).sum(axis=1), 1):
+        return rotation
+    if np.linalg.det(snapped) < 0:
+        return rotation
+    angle = quat_angle_rad(matrix_to_quat(rotation), matrix_to_quat(snapped))
+    return snapped if np.degrees(angle) <= tolerance_deg else rotation
+
+
+def _centre(part: ConvexPart) -> np.ndarray:
+    """Centre of the part's box, part frame: the point whose displacement counts as the part's."""
+    return 0.5 * (part.vertices.min(axis=0) + part.vertices.max(axis=0))
+
+
+def _clamped(part: ConvexPart, original: Pose, candidate: Pose, settings: RepairSettings) -> Pose:
+    """``candidate`` with its centre moved back towards ``original``'s to within the translation bound."""
+    centre = _centre(part)
+    offset = candidate.apply(centre) - original.apply(centre)
+    norm = float(np.linalg.norm(offset))
+    if norm <= settings.max_translation_m:
+        return candidate
+    target = original.apply(centre) + offset * (settings.max_translation_m / norm)
+    return Pose(target - candidate.rotation @ centre, candidate.quat_wxyz)
+
+
+def _deepest_penetration(parts: list[ConvexPart], poses: list[Pose], cutoff_m: float) -> float:
+    deepest = 0.0
+    for i in range(len(parts)):
+        for j in range(i + 1, len(parts)):
+            d = signed_distance(parts[i], poses[i], parts[j], poses[j], cutoff_m).distance_m
+            deepest = max(deepest, -d)
+    return deepest
+
+
+def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSettings = RepairSettings(),
+                 floor_z_m: float = 0.0) -> tuple[list[Pose], RepairReport]:
+    """Repaired ``assembly_from_part`` poses (same order as ``parts``) and the report."""
+    original = list(poses)
+    before = _deepest_penetration(parts, original, settings.snap_distance_m)
+    current = []
+    for part, pose in zip(parts, original):
+        rotation = snap_rotation_to_axes(pose.rotation, min(settings.align_tolerance_deg, settings.max_rotation_deg))
+        # rotate about the part's centre so that aligning does not move it
+        centre_world = pose.apply(_centre(part))
+        current.append(Pose.from_rotation(rotation, centre_world - rotation @ _centre(part)))
+    n = len(parts)
+    for _ in range(settings.iterations):
+        shifts = np.zeros((n, 3))
+        counts = np.zeros(n)
+        for i in range(n):
+            lowest = float(current[i].apply(parts[i].vertices)[:, 2].min()) - floor_z_m
+            if lowest < settings.snap_distance_m:
+                shifts[i, 2] += -lowest  # onto the floor (up out of it, or down onto it)
+                counts[i] += 1
+            for j in range(i + 1, n):
+                result = signed_distance(parts[i], current[i], parts[j], current[j], settings.snap_distance_m)
+                if not result.measured or result.distance_m > settings.snap_distance_m:
+                    continue
+                if abs(result.distance_m) <= settings.penetration_tolerance_m or result.normal_ab is None:
+                    continue
+                # move b along normal_ab by -distance (apart when penetrating, together when apart), half each
+                correction = -result.distance_m * result.normal_ab
+                shifts[i] -= 0.5 * correction
+                shifts[j] += 0.5 * correction
+                counts[i] += 1
+                counts[j] += 1
+        if not np.any(counts):
+            break
+        moved = np.where(counts[:, None] > 0, shifts / np.maximum(counts, 1)[:, None], 0.0)
+        current = [_clamped(p, o, Pose(c.position + m, c.quat_wxyz), settings)
+                   for p, o, c, m in zip(parts, original, current, moved)]
+    after = _deepest_penetration(parts, current, settings.snap_distance_m)
+    report = RepairReport(
+        translation_m={p.name: float(np.linalg.norm(c.apply(_centre(p)) - o.apply(_centre(p))))
+                       for p, o, c in zip(parts, original, current)},
+        rotation_deg={p.name: float(np.degrees(quat_angle_rad(o.quat_wxyz, c.quat_wxyz)))
+                      for p, o, c in zip(parts, original, current)},
+        deepest_penetration_before_m=before,
+        deepest_penetration_after_m=after,
+    )
+    return current, report
