@@ -1,0 +1,115 @@
+"""The Franka Panda in a PyBullet client: joints, limits, forward and inverse kinematics.
+
+Joint values are radians, positions metres, poses ``world_from_*`` in the world frame of the cell. Inverse
+kinematics uses PyBullet's damped least squares from several seeded starts and accepts a solution only when
+forward kinematics confirms it and every joint is within its limits.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pybullet_data
+
+from planning.pose import Pose
+
+ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
+FINGER_JOINTS = ("panda_finger_joint1", "panda_finger_joint2")
+TCP_LINK = "panda_grasptarget"
+HAND_LINK = "panda_hand"
+# Franka's published limits (rad/s, rad/s^2, rad/s^3), joints 1-7
+VELOCITY_LIMITS = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
+ACCELERATION_LIMITS = np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])
+JERK_LIMITS = np.array([7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0])
+
+
+class IKError(RuntimeError):
+    """No inverse-kinematics solution within tolerance and joint limits."""
+
+
+@dataclass(frozen=True)
+class IKSettings:
+    restarts: int = 12
+    position_tolerance_m: float = 0.001
+    angle_tolerance_rad: float = 0.01
+    iterations: int = 100
+    refinements: int = 8
+
+
+class Panda:
+    """A Panda loaded into an existing PyBullet client ``client`` (a :class:`cell.bullet.BulletClient`)."""
+
+    def __init__(self, client, world_from_base: Pose, urdf: str = "franka_panda/panda.urdf") -> None:
+        self.pb, self.cid = client.pb, client.client_id
+        position, orientation = world_from_base.to_pybullet()
+        self.body = self.pb.loadURDF(f"{pybullet_data.getDataPath()}/{urdf}", position, orientation,
+                                     useFixedBase=True, flags=self.pb.URDF_USE_SELF_COLLISION,
+                                     physicsClientId=self.cid)
+        names = {}
+        self.lower, self.upper = [], []
+        for j in range(self.pb.getNumJoints(self.body, physicsClientId=self.cid)):
+            info = self.pb.getJointInfo(self.body, j, physicsClientId=self.cid)
+            names[info[1].decode()] = j
+            names[info[12].decode()] = j  # link names map to their joint index too
+        self.arm = [names[n] for n in ARM_JOINTS]
+        self.fingers = [names[n] for n in FINGER_JOINTS]
+        self.tcp_link = names[TCP_LINK]
+        self.hand_link = names[HAND_LINK]
+        infos = [self.pb.getJointInfo(self.body, j, physicsClientId=self.cid) for j in self.arm]
+        self.lower_limits = np.array([i[8] for i in infos])
+        self.upper_limits = np.array([i[9] for i in infos])
+
+    # --- state ----------------------------------------------------------------------------------------------
+    def set_arm(self, q: np.ndarray) -> None:
+        for joint, value in zip(self.arm, q):
+            self.pb.resetJointState(self.body, joint, float(value), physicsClientId=self.cid)
+
+    def arm_q(self) -> np.ndarray:
+        return np.array([s[0] for s in self.pb.getJointStates(self.body, self.arm, physicsClientId=self.cid)])
+
+    def set_opening(self, opening_m: float) -> None:
+        """Open the hand to ``opening_m`` (0-0.08 m between the fingers)."""
+        half = float(np.clip(opening_m, 0.0, 0.08)) / 2.0
+        for joint in self.fingers:
+            self.pb.resetJointState(self.body, joint, half, physicsClientId=self.cid)
+
+    def within_limits(self, q: np.ndarray, margin: float = 0.0) -> bool:
+        return bool(np.all(q >= self.lower_limits + margin) and np.all(q <= self.upper_limits - margin))
+
+    # --- kinematics -----------------------------------------------------------------------------------------
+    def forward_tcp(self, q: np.ndarray) -> Pose:
+        """``world_from_tcp`` at arm configuration ``q`` (sets the arm)."""
+        self.set_arm(q)
+        state = self.pb.getLinkState(self.body, self.tcp_link, computeForwardKinematics=True,
+                                     physicsClientId=self.cid)
+        return Pose.from_pybullet(state[4], state[5])
+
+    def inverse_tcp(self, world_from_tcp: Pose, rng: np.random.Generator, seed_q: np.ndarray | None = None,
+                    settings: IKSettings = IKSettings()) -> np.ndarray:
+        """Arm configuration placing the TCP at ``world_from_tcp``; raises :class:`IKError`.
+
+        The first start is ``seed_q`` (or the current configuration), the others uniform within the limits.
+        """
+        position, orientation = world_from_tcp.to_pybullet()
+        starts = [np.asarray(seed_q if seed_q is not None else self.arm_q(), dtype=np.float64)]
+        starts += [rng.uniform(self.lower_limits, self.upper_limits) for _ in range(settings.restarts - 1)]
+        best_error = np.inf
+        for start in starts:
+            q = start
+            for _ in range(settings.refinements):  # PyBullet's IK is one damped step: iterate it from its own result
+                self.set_arm(q)
+                solution = self.pb.calculateInverseKinematics(
+                    self.body, self.tcp_link, position, orientation, maxNumIterations=settings.iterations,
+                    residualThreshold=1e-7, physicsClientId=self.cid)
+                q = np.clip(np.array(solution[:7]), self.lower_limits, self.upper_limits)
+                dp, da = self.forward_tcp(q).distance(world_from_tcp)
+                if dp <= settings.position_tolerance_m and da <= settings.angle_tolerance_rad:
+                    break
+            if not self.within_limits(q):
+                continue
+            best_error = min(best_error, dp)
+            if dp <= settings.position_tolerance_m and da <= settings.angle_tolerance_rad:
+                return q
+        raise IKError(f"no inverse kinematics for the TCP at {world_from_tcp} within limits "
+                      f"({settings.restarts} starts; closest {best_error * 1000:.1f} mm)")

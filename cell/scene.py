@@ -1,0 +1,139 @@
+"""Typed scene files: the robot cell as data (``scenes/*.toml``), loaded with defaults and validated.
+
+Every field is documented in ``scenes/cell.toml``, the default scene. A value at fault is named with its file
+and key in a :class:`SceneError`.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+from planning.pose import Pose
+from scenes import scenes_root
+
+DEFAULT_SCENE = "cell.toml"
+
+
+class SceneError(ValueError):
+    """A malformed scene file; the message names the file and the key."""
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    urdf: str
+    world_from_base: Pose
+    home_q: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class TableConfig:
+    top_z: float
+    size: tuple[float, float, float]
+    centre_xy: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class FixtureConfig:
+    world_from_assembly: Pose
+
+
+@dataclass(frozen=True)
+class KittingConfig:
+    origin_xy: tuple[float, float]
+    size_xy: tuple[float, float]
+    pedestal_height: float
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    eye: tuple[float, float, float]
+    target: tuple[float, float, float]
+    fov_deg: float
+    width_px: int
+    height_px: int
+
+
+@dataclass(frozen=True)
+class Scene:
+    robot: RobotConfig
+    table: TableConfig
+    fixture: FixtureConfig
+    kitting: KittingConfig
+    camera: CameraConfig
+    random_seed: int
+    source: str
+
+
+class _Reader:
+    def __init__(self, data: dict, source: str) -> None:
+        self.data, self.source = data, source
+
+    def section(self, name: str) -> dict:
+        value = self.data.get(name)
+        if not isinstance(value, dict):
+            raise SceneError(f"{self.source}: missing section [{name}]")
+        return value
+
+    def numbers(self, section: str, key: str, count: int | None = None) -> tuple[float, ...]:
+        value = self.section(section).get(key)
+        if (not isinstance(value, list) or (count is not None and len(value) != count)
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                           for v in value)):
+            size = f"{count} " if count else ""
+            raise SceneError(f"{self.source}: [{section}] {key} must be a list of {size}finite numbers, got {value!r}")
+        return tuple(float(v) for v in value)
+
+    def number(self, section: str, key: str, positive: bool = False) -> float:
+        value = self.section(section).get(key)
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+            raise SceneError(f"{self.source}: [{section}] {key} must be a finite number, got {value!r}")
+        if positive and value <= 0:
+            raise SceneError(f"{self.source}: [{section}] {key} must be positive, got {value!r}")
+        return float(value)
+
+    def pose(self, section: str, key: str) -> Pose:
+        value = self.section(section).get(key)
+        if not isinstance(value, dict):
+            raise SceneError(f"{self.source}: [{section}] {key} must be {{ position = [...], quat_wxyz = [...] }}")
+        sub = _Reader({"pose": value}, self.source)
+        position = sub.numbers("pose", "position", 3)
+        quat = sub.numbers("pose", "quat_wxyz", 4)
+        try:
+            return Pose.from_checked_quat(position, quat)
+        except ValueError as exc:
+            raise SceneError(f"{self.source}: [{section}] {key}: {exc}") from exc
+
+
+def load_scene(path: str | Path | None = None) -> Scene:
+    """Load a scene file (default: the bundled ``scenes/cell.toml``)."""
+    path = Path(path) if path is not None else scenes_root() / DEFAULT_SCENE
+    if not path.is_file():
+        raise SceneError(f"{path}: scene file does not exist")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise SceneError(f"{path}: not valid TOML ({exc})") from exc
+    r = _Reader(data, str(path))
+    urdf = r.section("robot").get("urdf")
+    if not isinstance(urdf, str) or not urdf:
+        raise SceneError(f"{path}: [robot] urdf must be a path inside pybullet_data or the scene folder")
+    seed = data.get("random_seed", 0)
+    if not isinstance(seed, int) or isinstance(seed, bool):
+        raise SceneError(f"{path}: random_seed must be an integer, got {seed!r}")
+    width = r.number("camera", "width_px", positive=True)
+    height = r.number("camera", "height_px", positive=True)
+    return Scene(
+        robot=RobotConfig(urdf, r.pose("robot", "world_from_base"), r.numbers("robot", "home_q", 7)),
+        table=TableConfig(r.number("table", "top_z"), r.numbers("table", "size", 3),
+                          r.numbers("table", "centre_xy", 2)),
+        fixture=FixtureConfig(r.pose("fixture", "world_from_assembly")),
+        kitting=KittingConfig(r.numbers("kitting", "origin_xy", 2), r.numbers("kitting", "size_xy", 2),
+                              r.number("kitting", "pedestal_height", positive=True)),
+        camera=CameraConfig(r.numbers("camera", "eye", 3), r.numbers("camera", "target", 3),
+                            r.number("camera", "fov_deg", positive=True), int(width), int(height)),
+        random_seed=seed,
+        source=str(path),
+    )

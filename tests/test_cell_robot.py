@@ -1,0 +1,64 @@
+"""The cell's scene file and the Panda's kinematics."""
+
+import numpy as np
+import pytest
+
+from cell.bullet import BulletClient
+from cell.robot import IKError, Panda
+from cell.scene import SceneError, load_scene
+from planning.pose import Pose
+
+
+@pytest.fixture(scope="module")
+def panda():
+    with BulletClient() as client:
+        yield Panda(client, Pose.identity())
+
+
+def test_default_scene_loads():
+    scene = load_scene()
+    assert scene.fixture.world_from_assembly.position[2] == pytest.approx(0.12)
+    assert len(scene.robot.home_q) == 7
+
+
+def test_bad_scene_values_are_named(tmp_path):
+    text = load_scene().source
+    good = open(text).read()
+    path = tmp_path / "scene.toml"
+    path.write_text(good.replace("home_q = [0.0, -0.6, 0.0, -2.2, 0.0, 1.6, 0.785]", "home_q = [0.0, 1.0]"))
+    with pytest.raises(SceneError, match=r"scene\.toml: \[robot\] home_q must be a list of 7"):
+        load_scene(path)
+    path.write_text(good.replace("world_from_base = { position = [0.0, 0.0, 0.0], quat_wxyz = [1.0, 0.0, 0.0, 0.0] }",
+                                 "world_from_base = { position = [0.0, 0.0, 0.0], quat_wxyz = [2.0, 0.0, 0.0, 0.0] }"))
+    with pytest.raises(SceneError, match=r"\[robot\] world_from_base: quaternion .* norm 2"):
+        load_scene(path)
+    path.write_text("not = [toml")
+    with pytest.raises(SceneError, match="not valid TOML"):
+        load_scene(path)
+    with pytest.raises(SceneError, match="does not exist"):
+        load_scene(tmp_path / "missing.toml")
+
+
+def test_inverse_kinematics_top_down_grasps(panda):
+    rng = np.random.default_rng(0)
+    solved = 0
+    trials = 40
+    for _ in range(trials):
+        position = [rng.uniform(0.3, 0.6), rng.uniform(-0.4, 0.4), rng.uniform(0.05, 0.45)]  # the cell's work zone
+        yaw = rng.uniform(-np.pi, np.pi)
+        # approach (TCP +z) pointing down, closing axis turned by yaw
+        target = Pose(position, [0.0, np.cos(yaw / 2), np.sin(yaw / 2), 0.0])
+        try:
+            q = panda.inverse_tcp(target, rng, seed_q=np.array(load_scene().robot.home_q))
+        except IKError:
+            continue
+        solved += 1
+        assert panda.within_limits(q)
+        dp, da = panda.forward_tcp(q).distance(target)
+        assert dp <= 0.001 and da <= 0.01
+    assert solved >= 0.95 * trials
+
+
+def test_unreachable_target_raises_with_its_pose(panda):
+    with pytest.raises(IKError, match="no inverse kinematics for the TCP at Pose"):
+        panda.inverse_tcp(Pose([2.0, 0.0, 0.5], [1, 0, 0, 0]), np.random.default_rng(1))
