@@ -70,10 +70,9 @@ class RobotCollisionChecker:
     """
 
     def __init__(self, world_from_base: np.ndarray, obstacles: dict[str, tuple[ConvexPart, np.ndarray]],
-                 urdf_path: str | None = None, margin_m: float = 0.0) -> None:
+                 urdf_path: str | None = None) -> None:
         self.chain = load_chain(urdf_path or panda_urdf_path())
         self.world_from_base = np.asarray(world_from_base, dtype=np.float64)
-        self.margin_m = margin_m
         # robot: (link name, fcl object, link_from_mesh, hull vertices in the mesh frame)
         self.links = []
         for link, meshes in self.chain.collision.items():
@@ -123,7 +122,7 @@ class RobotCollisionChecker:
     def _against_world(self, obj: fcl.CollisionObject, box: np.ndarray, name: str) -> Collision | None:
         if len(self.world_boxes) == 0:
             return None
-        lo, hi = box[0] - self.margin_m, box[1] + self.margin_m
+        lo, hi = box
         near = np.flatnonzero(np.all(self.world_boxes[:, 0] <= hi, axis=1)
                               & np.all(self.world_boxes[:, 1] >= lo, axis=1))
         for k in near:
