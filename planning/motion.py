@@ -1,0 +1,108 @@
+"""Joint-space motion planning with OMPL (RRTConnect by default) and a caller-given validity check.
+
+Pure planning: the validity check is a function of the 7 joint values (e.g.
+:meth:`planning.robot_collision.RobotCollisionChecker.is_valid`); the result is a path of waypoints (K, 7) in
+radians. Failures are typed (:class:`MotionPlanningError` with ``kind``) so the cell can name the step.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+PLANNERS = ("RRTConnect", "RRT", "RRTstar", "PRM", "KPIECE1", "BKPIECE1", "LBKPIECE1", "BITstar")
+_seed_lock = threading.Lock()
+_seeded: int | None = None
+
+
+class MotionPlanningError(RuntimeError):
+    """``kind`` is one of "start_in_collision", "goal_in_collision", "timeout", "invalid_request"."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+@dataclass(frozen=True)
+class MotionSettings:
+    planner: str = "RRTConnect"
+    time_limit_s: float = 5.0
+    # fraction of the joint-space diagonal between validity checks along edges (OMPL's resolution); the Panda's
+    # diagonal is about 14 rad, so 0.001 checks every 0.014 rad (a few millimetres at the hand)
+    check_resolution: float = 0.001
+    simplify: bool = True
+    seed: int = 0
+
+
+def _ompl():
+    from ompl import base as ob
+    from ompl import geometric as og
+    from ompl import util as ou
+
+    ou.setLogLevel(ou.LOG_WARN)
+    return ob, og, ou
+
+
+def _seed_once(ou, seed: int) -> None:
+    """OMPL seeds its generators once per process, before the first is made; later seeds are ignored."""
+    global _seeded
+    with _seed_lock:
+        if _seeded is None:
+            ou.RNG.setSeed(max(1, int(seed)))
+            _seeded = seed
+
+
+def straight_line_valid(is_valid: Callable[[np.ndarray], bool], q_from: np.ndarray, q_to: np.ndarray,
+                        step_rad: float = 0.01) -> bool:
+    """Whether every configuration on the straight joint-space segment (checked every ``step_rad``) is valid."""
+    distance = float(np.max(np.abs(np.asarray(q_to) - np.asarray(q_from))))
+    steps = max(1, int(np.ceil(distance / step_rad)))
+    return all(is_valid(q_from + (q_to - q_from) * (k / steps)) for k in range(steps + 1))
+
+
+def plan_joint_path(is_valid: Callable[[np.ndarray], bool], start_q: np.ndarray, goal_q: np.ndarray,
+                    lower: np.ndarray, upper: np.ndarray, settings: MotionSettings = MotionSettings()) -> np.ndarray:
+    """A collision-free path (K, 7) from ``start_q`` to ``goal_q`` within [lower, upper], or raise."""
+    start_q, goal_q = np.asarray(start_q, dtype=np.float64), np.asarray(goal_q, dtype=np.float64)
+    if settings.planner not in PLANNERS:
+        raise MotionPlanningError("invalid_request", f"unknown planner {settings.planner!r}; choose one of {PLANNERS}")
+    for label, q in (("start", start_q), ("goal", goal_q)):
+        if np.any(q < lower - 1e-9) or np.any(q > upper + 1e-9):
+            raise MotionPlanningError("invalid_request", f"{label} configuration {np.round(q, 3).tolist()} is "
+                                                         "outside the joint limits")
+    if not is_valid(start_q):
+        raise MotionPlanningError("start_in_collision", "the start configuration is in collision")
+    if not is_valid(goal_q):
+        raise MotionPlanningError("goal_in_collision", "the goal configuration is in collision")
+    if straight_line_valid(is_valid, start_q, goal_q):
+        return np.stack([start_q, goal_q])
+    ob, og, ou = _ompl()
+    _seed_once(ou, settings.seed)
+    dof = len(start_q)
+    space = ob.RealVectorStateSpace(dof)
+    bounds = ob.RealVectorBounds(dof)
+    for i in range(dof):
+        bounds.setLow(i, float(lower[i]))
+        bounds.setHigh(i, float(upper[i]))
+    space.setBounds(bounds)
+    setup = og.SimpleSetup(space)
+    setup.setStateValidityChecker(lambda state: bool(is_valid(np.array([state[i] for i in range(dof)]))))
+    information = setup.getSpaceInformation()
+    information.setStateValidityCheckingResolution(settings.check_resolution)
+    start, goal = space.allocState(), space.allocState()
+    for i in range(dof):
+        start[i], goal[i] = float(start_q[i]), float(goal_q[i])
+    setup.setStartAndGoalStates(start, goal)
+    setup.setPlanner(getattr(og, settings.planner)(information))
+    solved = setup.solve(settings.time_limit_s)
+    if not solved or "Exact" not in str(solved):
+        raise MotionPlanningError("timeout", f"{settings.planner} found no path within {settings.time_limit_s:.1f} s")
+    if settings.simplify:
+        setup.simplifySolution(min(1.0, settings.time_limit_s))
+    path = setup.getSolutionPath()
+    waypoints = np.array([[path.getState(k)[i] for i in range(dof)] for k in range(path.getStateCount())])
+    waypoints[0], waypoints[-1] = start_q, goal_q
+    return waypoints

@@ -1,0 +1,53 @@
+"""Joint-space planning with OMPL around a real obstacle, checked with the real collision model."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from cell.scene import load_scene
+from planning.collision import ConvexPart
+from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path, straight_line_valid
+from planning.robot_collision import RobotCollisionChecker
+
+LOWER = np.array([-2.9671, -1.8326, -2.9671, -3.1416, -2.9671, -0.0873, -2.9671])
+UPPER = np.array([2.9671, 1.8326, 2.9671, 0.0, 2.9671, 3.8223, 2.9671])
+
+
+def world_with_wall():
+    table = ConvexPart.from_mesh("table", trimesh.creation.box([1.2, 1.6, 0.05]))
+    wall = ConvexPart.from_mesh("wall", trimesh.creation.box([0.3, 0.04, 0.5]))
+    world_from_table, world_from_wall = np.eye(4), np.eye(4)
+    world_from_table[:3, 3] = [0.45, 0.0, -0.025]
+    world_from_wall[:3, 3] = [0.5, 0.0, 0.25]
+    return RobotCollisionChecker(np.eye(4), {"table": (table, world_from_table), "wall": (wall, world_from_wall)})
+
+
+def test_plans_around_a_wall():
+    checker = world_with_wall()
+    home = np.array(load_scene().robot.home_q)
+    start = home.copy()
+    start[0] = 0.8  # arm swung to the left of the wall
+    goal = home.copy()
+    goal[0] = -0.8  # ... and to its right
+    assert checker.is_valid(start) and checker.is_valid(goal)
+    assert not straight_line_valid(checker.is_valid, start, goal)  # the direct swing hits the wall
+    path = plan_joint_path(checker.is_valid, start, goal, LOWER, UPPER, MotionSettings(time_limit_s=20.0))
+    np.testing.assert_allclose(path[0], start)
+    np.testing.assert_allclose(path[-1], goal)
+    for a, b in zip(path[:-1], path[1:]):
+        assert straight_line_valid(checker.is_valid, a, b, step_rad=0.01)
+
+
+def test_typed_failures():
+    checker = world_with_wall()
+    home = np.array(load_scene().robot.home_q)
+    into_table = np.array([0.0, 1.5, 0.0, -0.5, 0.0, 1.0, 0.0])
+    with pytest.raises(MotionPlanningError) as info:
+        plan_joint_path(checker.is_valid, into_table, home, LOWER, UPPER)
+    assert info.value.kind == "start_in_collision"
+    with pytest.raises(MotionPlanningError) as info:
+        plan_joint_path(checker.is_valid, home, into_table, LOWER, UPPER)
+    assert info.value.kind == "goal_in_collision"
+    with pytest.raises(MotionPlanningError) as info:
+        plan_joint_path(checker.is_valid, home, home, LOWER, UPPER, MotionSettings(planner="Magic"))
+    assert info.value.kind == "invalid_request"
