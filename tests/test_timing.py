@@ -1,0 +1,60 @@
+"""Ruckig timing: limits respected (checked by finite differences), no stop at every waypoint, repairs where a
+blend would leave the allowed region."""
+
+import numpy as np
+
+from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS
+from planning.timing import JointLimits, time_path, time_waypoints
+
+LIMITS = JointLimits(VELOCITY_LIMITS, ACCELERATION_LIMITS, JERK_LIMITS)
+
+
+def path():
+    rng = np.random.default_rng(0)
+    start = np.zeros(7)
+    # a gently bending path: each leg continues roughly in the direction of the last
+    legs = [np.full(7, 0.3) + rng.normal(scale=0.05, size=7) for _ in range(4)]
+    return np.cumsum([start, *legs], axis=0)
+
+
+def test_limits_hold_on_the_sampled_trajectory():
+    timed = time_path(path(), LIMITS)
+    t, q, qd, qdd = timed.sample(1000.0)
+    np.testing.assert_allclose(q[0], path()[0], atol=1e-9)
+    np.testing.assert_allclose(q[-1], path()[-1], atol=1e-9)
+    assert np.all(np.abs(qd) <= VELOCITY_LIMITS * (1 + 1e-6))
+    assert np.all(np.abs(qdd) <= ACCELERATION_LIMITS * (1 + 1e-6))
+    # independent check by finite differences of the positions
+    dt = np.diff(t)
+    velocity = np.diff(q, axis=0) / dt[:, None]
+    assert np.all(np.abs(velocity) <= VELOCITY_LIMITS * 1.01)
+    jerk = np.diff(qdd, axis=0) / dt[:, None]
+    assert np.all(np.abs(jerk) <= JERK_LIMITS * 1.01)
+
+
+def test_faster_than_stopping_at_every_waypoint():
+    waypoints = path()
+    blended = time_path(waypoints, LIMITS)
+    stopping = time_waypoints(waypoints, LIMITS, np.zeros_like(waypoints))
+    assert blended.duration < 0.9 * stopping.duration
+    assert np.any(blended.via_velocities[1:-1])
+
+
+def test_stops_where_a_blend_would_leave_the_path():
+    # turns of 45 degrees: blended, but the blend cuts the corners by more than the allowed 0.01 rad
+    waypoints = np.array([[0.0] * 7, [0.5] + [0.0] * 6, [0.85, 0.35] + [0.0] * 5, [1.35, 0.35] + [0.0] * 5])
+
+    def near_polyline(q):  # valid only within 0.01 rad of the planned segments
+        best = np.inf
+        for a, b in zip(waypoints[:-1], waypoints[1:]):
+            s = np.clip(np.dot(q - a, b - a) / np.dot(b - a, b - a), 0, 1)
+            best = min(best, np.linalg.norm(q - (a + s * (b - a))))
+        return best <= 0.01
+
+    free = time_path(waypoints, LIMITS)
+    _, q_free, _, _ = free.sample(500.0)
+    assert not all(near_polyline(c) for c in q_free)  # unchecked, the blend leaves the corridor
+    timed = time_path(waypoints, LIMITS, is_valid=near_polyline)
+    _, q, _, _ = timed.sample(500.0)
+    assert all(near_polyline(c) for c in q)
+    assert timed.duration >= free.duration
