@@ -1,0 +1,230 @@
+"""Typed configuration of the perception model and its training, read from TOML files.
+
+A file has the sections ``[model]``, ``[loss]``, ``[train]`` (with sub-tables ``[train.segmentation]`` and
+``[train.pose]``, one per training stage) and ``[data]``; every field has a default, so a file names only what it
+changes. Unknown fields, wrong types and out-of-range values are refused with the field's dotted name
+(``model.image_size must be ...``). Bundled files: ``perception/configs/paper.toml`` (the paper's sizes),
+``compact.toml`` (CPU-trainable, the bundled weights) and ``tiny.toml`` (tests).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+try:  # Python >= 3.11
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+    import tomli as tomllib  # type: ignore[no-redef]
+
+CONFIG_DIR = Path(__file__).parent / "configs"
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing, unknown, of the wrong type or out of range (the message names it)."""
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Network sizes. F1 = ``point_feature``, F2 = ``part_feature``, F3 = ``hidden`` in the paper's notation."""
+
+    image_size: int = 224  # network input resolution; the 224x224 images are resized to it inside the model
+    resnet_width: float = 1.0  # channel multiplier of the ResNet-18 image encoders (1.0: 64-128-256-512)
+    mask_encoder_width: float = 1.0  # channel multiplier of the per-part mask encoder (image + mask input)
+    decoder_width: float = 1.0  # channel multiplier of the U-Net decoder (1.0: 256-128-64-32-32)
+    resnet_blocks: tuple[int, ...] = (2, 2, 2, 2)  # basic blocks per ResNet stage (ResNet-18: 2, 2, 2, 2)
+    pointnet_widths: tuple[int, ...] = (64, 64, 64, 128)  # PointNet per-point layers before the F1 layer
+    point_feature: int = 512  # F1: PointNet part geometry feature
+    part_feature: int = 256  # F2: SLP1 and SLP2 width; f_3d = [SLP1; SLP2] has 2 * F2 features
+    hidden: int = 512  # F3: graph node width and pose MLP width
+    image_feature: int = 512  # global image feature and per-part mask feature of the pose network
+    encoder_points: int = 1000  # points per part fed to the PointNets (the first of the FPS order)
+    max_parts: int = 20  # P_max: padding size and instance one-hot length
+    knn: int = 5  # phase-2 neighbours per part (nearest predicted centres)
+    graph_iterations: int = 2  # message-passing iterations per phase
+    gru_hidden: int = 512  # B-GRU hidden state
+
+    def __post_init__(self):
+        _positive(self, "image_size", "point_feature", "part_feature", "hidden", "image_feature",
+                  "encoder_points", "max_parts", "graph_iterations", "gru_hidden")
+        _positive(self, "resnet_width", "mask_encoder_width", "decoder_width")
+        if self.image_size % 32:
+            raise ConfigError(f"model.image_size must be a multiple of 32 (ResNet stride), got {self.image_size}")
+        if len(self.resnet_blocks) != 4 or min(self.resnet_blocks) < 1:
+            raise ConfigError(f"model.resnet_blocks must be 4 positive counts, got {list(self.resnet_blocks)}")
+        if not self.pointnet_widths or min(self.pointnet_widths) < 1:
+            raise ConfigError(f"model.pointnet_widths must be positive widths, got {list(self.pointnet_widths)}")
+        if not 1 <= self.encoder_points <= 1000:
+            raise ConfigError(f"model.encoder_points must be in 1..1000, got {self.encoder_points}")
+        if self.knn < 0:
+            raise ConfigError(f"model.knn must be >= 0, got {self.knn}")
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """Pose-loss weights (the paper's: 1, 20, 1, 1) and the point subsets the losses use."""
+
+    translation: float = 1.0
+    rotation_chamfer: float = 20.0
+    rotation_l2: float = 1.0
+    shape_chamfer: float = 1.0
+    points: int = 1000  # points per part in the per-part losses (the first of the FPS order: evenly spread)
+    shape_points: int = 100  # points per part in the whole-shape chamfer (20 parts: 2000 points a shape)
+    match_points: int = 100  # points per part in the Hungarian matching cost
+    iou_smooth: float = 1.0  # soft-IoU smoothing, pixels: (I + s) / (U + s); an absent part predicted absent: 1
+
+    def __post_init__(self):
+        for name in ("translation", "rotation_chamfer", "rotation_l2", "shape_chamfer", "iou_smooth"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"loss.{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("points", "shape_points", "match_points"):
+            if not 1 <= getattr(self, name) <= 1000:
+                raise ConfigError(f"loss.{name} must be in 1..1000, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class StageConfig:
+    """Schedule of one training stage: Adam, cosine decay to ``lr * min_lr_ratio``, early stopping."""
+
+    steps: int = 10000  # optimiser steps (upper bound when early stopping ends the stage sooner)
+    batch_size: int = 8  # samples per step and per process
+    lr: float = 1e-3
+    weight_decay: float = 1e-5
+    min_lr_ratio: float = 0.05
+    warmup_steps: int = 0
+    val_every: int = 500  # steps between validations (0: validate only at the end)
+    patience: int = 0  # validations without improvement before stopping (0: never stop early)
+    grad_clip: float = 10.0  # max gradient norm (0: off)
+
+    def __post_init__(self):
+        _positive(self, "steps", "batch_size", "lr")
+        if self.batch_size < 2:
+            raise ConfigError(f"{{stage}}.batch_size must be >= 2 (batch norm over the batch), got {self.batch_size}")
+        for name in ("weight_decay", "min_lr_ratio", "warmup_steps", "val_every", "patience", "grad_clip"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{{stage}}.{name} must be >= 0, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    seed: int = 0
+    segmentation: StageConfig = field(default_factory=StageConfig)
+    pose: StageConfig = field(default_factory=StageConfig)
+    freeze_segmentation: bool = True  # pose stage: the segmentation network is frozen (the paper's two stages)
+    checkpoint_minutes: float = 5.0  # wall-clock minutes between checkpoints (and at every stage end)
+    val_samples: int = 200  # validation samples used (the first of the sorted val split; 0: all)
+    log_every: int = 10  # steps between loss records in the JSON log
+    num_workers: int = 0  # DataLoader worker processes
+    threads: int = 0  # torch CPU threads per process (0: torch's default)
+
+    def __post_init__(self):
+        _positive(self, "checkpoint_minutes", "log_every")
+        for name in ("val_samples", "num_workers", "threads"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"train.{name} must be >= 0, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    paths: tuple[str, ...] = ()  # dataset folders (each with train/ val/ test/), relative to the working folder
+    categories: tuple[str, ...] = ()  # keep only objects of these categories (file-name prefix); empty: all
+
+
+@dataclass(frozen=True)
+class Config:
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+
+    def to_dict(self) -> dict:
+        return _to_plain(dataclasses.asdict(self))
+
+
+def _positive(obj, *names: str) -> None:
+    section = {ModelConfig: "model", StageConfig: "{stage}", TrainConfig: "train"}.get(type(obj), "?")
+    for name in names:
+        value = getattr(obj, name)
+        if value <= 0:
+            raise ConfigError(f"{section}.{name} must be > 0, got {value}")
+
+
+def _to_plain(value):
+    if isinstance(value, dict):
+        return {k: _to_plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_to_plain(v) for v in value]
+    return value
+
+
+def _convert(value, hint, name: str):
+    """Check/convert one TOML value against a field's type hint."""
+    origin = typing.get_origin(hint)
+    if dataclasses.is_dataclass(hint):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{name} must be a table, got {value!r}")
+        return _build(hint, value, name)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{name} must be a list, got {value!r}")
+        item = typing.get_args(hint)[0]
+        return tuple(_convert(v, item, f"{name}[{i}]") for i, v in enumerate(value))
+    if origin in (typing.Union, types.UnionType):
+        raise ConfigError(f"{name}: union types are not supported")  # pragma: no cover
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{name} must be true or false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{name} must be an integer, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{name} must be a number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{name} must be a string, got {value!r}")
+        return value
+    raise ConfigError(f"{name}: unsupported type {hint}")  # pragma: no cover
+
+
+def _build(cls, data: dict, prefix: str):
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        where = f"{prefix}." if prefix else ""
+        raise ConfigError(f"unknown field {where}{unknown[0]} (known: {', '.join(sorted(names))})")
+    kwargs = {key: _convert(value, hints[key], f"{prefix}.{key}" if prefix else key) for key, value in data.items()}
+    try:
+        return cls(**kwargs)
+    except ConfigError as exc:
+        raise ConfigError(str(exc).replace("{stage}", prefix)) from None
+
+
+def config_from_dict(data: dict) -> Config:
+    """Build and validate a :class:`Config` from nested dictionaries (as read from TOML or a checkpoint)."""
+    return _build(Config, data, "")
+
+
+def load_config(path: str | Path) -> Config:
+    """Read a TOML config file. ``path`` may also be a bundled config's name (``compact``, ``paper``, ``tiny``)."""
+    path = Path(path)
+    if not path.exists() and not path.suffix and (CONFIG_DIR / f"{path}.toml").exists():
+        path = CONFIG_DIR / f"{path}.toml"
+    try:
+        with open(path, "rb") as handle:
+            data = tomllib.load(handle)
+    except FileNotFoundError:
+        raise ConfigError(f"config file {path} not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    try:
+        return config_from_dict(data)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None

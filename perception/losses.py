@@ -1,0 +1,127 @@
+"""Training losses, each after Hungarian matching inside equivalence classes (:mod:`perception.matching`).
+
+Segmentation: negative soft-IoU between predicted and ground-truth part masks. Pose (the paper's weights):
+
+    1 x translation L2      squared distance between predicted and true translation
+    20 x rotated-point chamfer  chamfer between the part cloud rotated by the predicted and by the true quaternion
+    1 x rotated-point L2    mean squared distance between corresponding points under the two rotations
+    1 x whole-shape chamfer chamfer between all parts posed by the prediction and by the truth
+
+Prediction i is compared with the ground-truth part it is matched to, using part i's own cloud under both
+poses. The matching cost of a candidate pair is the sum of the first three (weighted) terms for that pair, on a
+subset of points. Per-part terms are averaged over the valid parts of the batch, the shape term over objects.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from perception.config import LossConfig
+from perception.matching import batch_match, gather_parts
+from perception.model.geometry import chamfer, masked_chamfer, pose_points, rotate
+from perception.model.padding import pack
+
+# ---------------------------------------------------------------------------------------------- segmentation
+
+
+def target_masks(part_labels: torch.Tensor, max_parts: int, size: int) -> torch.Tensor:
+    """(B, H, W) part index per pixel (-1 background) -> (B, P, size, size) one-hot masks. When downscaled,
+    each output pixel takes the label covering most of its area (background included), so masks stay
+    exclusive and a perfect prediction has soft IoU 1."""
+    labels = part_labels.clone()
+    labels[labels < 0] = max_parts  # background as the last channel
+    if labels.shape[-1] != size:
+        channels = torch.arange(max_parts + 1, device=labels.device).view(1, -1, 1, 1)
+        coverage = F.interpolate((labels.unsqueeze(1) == channels).float(), size=(size, size), mode="area")
+        labels = coverage.argmax(dim=1)
+    parts = torch.arange(max_parts, device=labels.device).view(1, -1, 1, 1)
+    return (labels.unsqueeze(1) == parts).float()
+
+
+def soft_iou_matrix(pred: torch.Tensor, target: torch.Tensor, smooth: float = 1.0) -> torch.Tensor:
+    """(B, P, P): soft IoU (I + s) / (U + s) between predicted mask i and target mask j, with I = sum(p g),
+    U = sum(p) + sum(g) - I over pixels. A part absent from both has IoU 1."""
+    inter = torch.einsum("bihw,bjhw->bij", pred, target)
+    union = pred.sum(dim=(2, 3)).unsqueeze(2) + target.sum(dim=(2, 3)).unsqueeze(1) - inter
+    return (inter + smooth) / (union + smooth)
+
+
+def segmentation_loss(masks: torch.Tensor, batch: dict, config: LossConfig) -> dict:
+    """``loss`` = -(mean matched soft IoU over valid parts); ``soft_iou`` the mean itself (detached)."""
+    valid = batch["valid"]
+    target = target_masks(batch["part_labels"], masks.shape[1], masks.shape[-1])
+    iou = soft_iou_matrix(masks, target, config.iou_smooth)
+    perm = batch_match(-iou, batch["classes"], valid)
+    matched = torch.gather(iou, 2, perm.unsqueeze(-1)).squeeze(-1)
+    mean = matched[valid].mean()
+    return {"loss": -mean, "soft_iou": mean.detach()}
+
+
+# ---------------------------------------------------------------------------------------------- pose
+
+
+def pair_costs(points: torch.Tensor, quat: torch.Tensor, trans: torch.Tensor, gt_quat: torch.Tensor,
+               gt_trans: torch.Tensor, classes: torch.Tensor, valid: torch.Tensor,
+               config: LossConfig) -> torch.Tensor:
+    """(B, P, P) matching cost of prediction i against ground-truth part j, finite only for valid pairs in one
+    class: the weighted translation, rotated-point chamfer and rotated-point L2 terms on part i's cloud
+    (its first ``match_points`` points). Computed without gradient, for the pairs that need it only."""
+    with torch.no_grad():
+        b, p = classes.shape
+        same = (classes.unsqueeze(2) == classes.unsqueeze(1)) & valid.unsqueeze(2) & valid.unsqueeze(1)
+        shared = same.sum(dim=2) > 1  # parts with an equivalent partner: only they can be exchanged
+        pairs = same & shared.unsqueeze(2)
+        cost = torch.full((b, p, p), float("inf"), device=quat.device)
+        eye = torch.eye(p, dtype=torch.bool, device=quat.device).expand(b, p, p)
+        cost = cost.masked_fill(eye & valid.unsqueeze(2), 0.0)  # a part alone in its class matches itself
+        bi, i, j = pairs.nonzero(as_tuple=True)
+        if len(bi):
+            pts = points[bi, i, : config.match_points]
+            rot_pred = rotate(pts, quat[bi, i])
+            rot_true = rotate(pts, gt_quat[bi, j])
+            terms = (config.translation * (trans[bi, i] - gt_trans[bi, j]).pow(2).sum(-1)
+                     + config.rotation_chamfer * chamfer(rot_pred, rot_true)
+                     + config.rotation_l2 * (rot_pred - rot_true).pow(2).sum(-1).mean(-1))
+            cost[bi, i, j] = terms.float()
+        return cost
+
+
+def pose_losses(quat: torch.Tensor, trans: torch.Tensor, batch: dict, config: LossConfig) -> dict:
+    """The four pose losses and their weighted sum ``loss`` for one set of predictions (B, P, 4) / (B, P, 3);
+    also ``perm`` (B, P), the ground-truth part matched to each prediction."""
+    valid, points = batch["valid"], batch["points"]
+    cost = pair_costs(points, quat, trans, batch["quat"], batch["trans"], batch["classes"], valid, config)
+    perm = batch_match(cost, batch["classes"], valid)
+    gt_quat, gt_trans = gather_parts(batch["quat"], perm), gather_parts(batch["trans"], perm)
+
+    pts = pack(points[:, :, : config.points], valid)  # (M, m, 3)
+    q, t, gq, gt = (pack(x, valid) for x in (quat, trans, gt_quat, gt_trans))
+    rot_pred, rot_true = rotate(pts, q), rotate(pts, gq)
+    translation = (t - gt).pow(2).sum(-1).mean()
+    rotation_chamfer = chamfer(rot_pred, rot_true).mean()
+    rotation_l2 = (rot_pred - rot_true).pow(2).sum(-1).mean()
+
+    s = config.shape_points
+    shape_pts = points[:, :, :s]
+    b, p = valid.shape
+    shape_pred = pose_points(shape_pts, quat, trans).reshape(b, p * s, 3)
+    shape_true = pose_points(shape_pts, gt_quat, gt_trans).reshape(b, p * s, 3)
+    point_valid = valid.unsqueeze(2).expand(b, p, s).reshape(b, p * s)
+    shape_chamfer = masked_chamfer(shape_pred, point_valid, shape_true, point_valid).mean()
+
+    loss = (config.translation * translation + config.rotation_chamfer * rotation_chamfer
+            + config.rotation_l2 * rotation_l2 + config.shape_chamfer * shape_chamfer)
+    return {"loss": loss, "translation": translation, "rotation_chamfer": rotation_chamfer,
+            "rotation_l2": rotation_l2, "shape_chamfer": shape_chamfer, "perm": perm}
+
+
+def model_pose_loss(outputs: dict, batch: dict, config: LossConfig) -> dict:
+    """Sum of :func:`pose_losses` over every supervised phase of ``outputs["poses"]`` (two for the paper's
+    model, one for the baselines). Logged terms are those of the final phase."""
+    total = 0.0
+    for quat, trans in outputs["poses"]:
+        terms = pose_losses(quat, trans, batch, config)
+        total = total + terms["loss"]
+    logged = {k: v.detach() for k, v in terms.items() if k not in ("loss", "perm")}
+    return {"loss": total, **logged, "final": terms["loss"].detach()}

@@ -1,0 +1,113 @@
+"""The training stages: what each trains, its loss and its validation.
+
+The paper's model trains in two stages: ``segmentation`` (the conditional U-Net, loss: negative soft-IoU;
+validated by the mean matched soft IoU), then ``pose`` (the pose network on the masks predicted by the
+segmentation network, frozen by default; loss: the four pose losses on both phases; validated by Part
+Accuracy, ties broken by the pose loss). With ``train.freeze_segmentation = false`` the pose stage fine-tunes
+both networks on the sum of the pose and segmentation losses. The baselines have the pose stage only.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from perception.config import Config, StageConfig
+from perception.losses import model_pose_loss, segmentation_loss
+from perception.metrics import MetricSummary, evaluate_batch
+from perception.model import AssemblyNet
+
+
+class SegmentationStage:
+    name = "segmentation"
+
+    def __init__(self, config: Config):
+        self.config = config
+        self.schedule: StageConfig = config.train.segmentation
+
+    def trainable(self, model: nn.Module) -> nn.Module:
+        return model.segmentation
+
+    def set_modes(self, model: nn.Module) -> None:
+        model.train()
+        for p in model.parameters():
+            p.requires_grad_(False)
+        for p in model.segmentation.parameters():
+            p.requires_grad_(True)
+
+    def loss(self, net: nn.Module, model: nn.Module, batch: dict) -> dict:
+        return segmentation_loss(net(batch)["masks"], batch, self.config.loss)
+
+    @torch.no_grad()
+    def validate(self, model: nn.Module, batches) -> tuple[dict, tuple]:
+        model.eval()
+        total, parts = 0.0, 0
+        for batch in batches:
+            terms = segmentation_loss(model.segmentation(batch)["masks"], batch, self.config.loss)
+            n = int(batch["valid"].sum())
+            total += float(terms["soft_iou"]) * n
+            parts += n
+        iou = total / max(parts, 1)
+        return {"val_soft_iou": iou}, (iou,)
+
+
+class PoseStage:
+    name = "pose"
+
+    def __init__(self, config: Config):
+        self.config = config
+        self.schedule: StageConfig = config.train.pose
+        self.freeze = config.train.freeze_segmentation
+
+    def _frozen(self, model: nn.Module) -> bool:
+        return isinstance(model, AssemblyNet) and self.freeze
+
+    def trainable(self, model: nn.Module) -> nn.Module:
+        return model.pose if self._frozen(model) else model
+
+    def set_modes(self, model: nn.Module) -> None:
+        model.train()
+        for p in model.parameters():
+            p.requires_grad_(True)
+        if self._frozen(model):
+            model.segmentation.eval()  # frozen batch-norm statistics too
+            for p in model.segmentation.parameters():
+                p.requires_grad_(False)
+
+    def loss(self, net: nn.Module, model: nn.Module, batch: dict) -> dict:
+        if self._frozen(model):
+            with torch.no_grad():
+                masks = model.segmentation(batch)["masks"]
+            out = net(batch, masks)
+            out["quat"], out["trans"] = out["poses"][-1]
+            return model_pose_loss(out, batch, self.config.loss)
+        out = net(batch)
+        terms = model_pose_loss(out, batch, self.config.loss)
+        if isinstance(model, AssemblyNet):  # fine-tuning both networks: keep the masks supervised
+            seg = segmentation_loss(out["masks"], batch, self.config.loss)
+            terms["loss"] = terms["loss"] + seg["loss"]
+            terms["soft_iou"] = seg["soft_iou"]
+        return terms
+
+    @torch.no_grad()
+    def validate(self, model: nn.Module, batches) -> tuple[dict, tuple]:
+        model.eval()
+        summary = MetricSummary()
+        loss, count = 0.0, 0
+        for batch in batches:
+            out = model(batch)
+            summary.add(evaluate_batch(out, batch))
+            loss += float(model_pose_loss(out, batch, self.config.loss)["final"]) * len(batch["name"])
+            count += len(batch["name"])
+        figures = summary.summary()
+        metrics = {"val_part_accuracy": figures["part_accuracy"], "val_shape_chamfer": figures["shape_chamfer"],
+                   "val_part_accuracy_visible": figures["part_accuracy_visible"],
+                   "val_part_accuracy_invisible": figures["part_accuracy_invisible"],
+                   "val_pose_loss": loss / max(count, 1)}
+        return metrics, (figures["part_accuracy"], -metrics["val_pose_loss"])
+
+
+def stages_for(model: nn.Module, config: Config) -> list:
+    if isinstance(model, AssemblyNet):
+        return [SegmentationStage(config), PoseStage(config)]
+    return [PoseStage(config)]

@@ -1,0 +1,55 @@
+"""Configuration files: the bundled ones load, mistakes are refused naming the field."""
+
+import pytest
+
+from perception.config import CONFIG_DIR, Config, ConfigError, config_from_dict, load_config
+from perception.model import build_model, count_parameters
+
+
+@pytest.mark.parametrize("name", ["paper", "compact", "tiny"])
+def test_bundled_configs_load_and_round_trip(name):
+    config = load_config(CONFIG_DIR / f"{name}.toml")
+    assert load_config(name) == config
+    assert config_from_dict(config.to_dict()) == config
+
+
+def test_paper_sizes():
+    config = load_config("paper")
+    assert (config.model.image_size, config.model.point_feature, config.model.part_feature,
+            config.model.hidden) == (224, 512, 256, 512)
+    assert (config.loss.translation, config.loss.rotation_chamfer, config.loss.rotation_l2,
+            config.loss.shape_chamfer) == (1.0, 20.0, 1.0, 1.0)
+    assert config.model.resnet_width == 1.0 and config.model.resnet_blocks == (2, 2, 2, 2)
+
+
+def test_compact_weights_fit_the_bundle_budget():
+    model = build_model(load_config("compact").model, "ours")
+    assert count_parameters(model) * 4 < 15 * 2**20  # float32 weights under 15 MB
+
+
+def test_defaults():
+    assert Config().model.max_parts == 20 and Config().train.freeze_segmentation
+
+
+@pytest.mark.parametrize("text, message", [
+    ("[model]\nimage_sise = 224\n", "unknown field model.image_sise"),
+    ("[model]\nimage_size = 100\n", "model.image_size must be a multiple of 32"),
+    ("[model]\nimage_size = '224'\n", "model.image_size must be an integer"),
+    ("[loss]\npoints = 5000\n", "loss.points must be in 1..1000"),
+    ("[train.pose]\nlr = -1.0\n", "train.pose.lr must be > 0"),
+    ("[train.segmentation]\nbatch_size = 1\n", "train.segmentation.batch_size must be >= 2"),
+    ("[train]\nfreeze_segmentation = 1\n", "train.freeze_segmentation must be true or false"),
+    ("[modle]\n", "unknown field modle"),
+    ("[model\n", "line 1"),
+])
+def test_mistakes_name_the_field(tmp_path, text, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=message.replace(".", r"\.")) as info:
+        load_config(path)
+    assert str(path) in str(info.value)
+
+
+def test_missing_file():
+    with pytest.raises(ConfigError, match="not found"):
+        load_config("no_such_config")
