@@ -19,7 +19,11 @@ import pytest
 import trimesh
 
 from perception.synth import CATEGORIES, LEVELS, generate
+from perception.synth.cabinet import DRAWER_BACK_ROOM_M, DRAWER_SIDE_GAP_M
+from perception.synth.chair import SEAT_SLAT_GAP_M
+from perception.synth.merge import MAX_STAGE_SPAN, assemblable
 from planning.assembly import read_assembly, write_assembly
+from planning.sequence import plan_assembly_sequence
 
 REPO = Path(__file__).resolve().parents[1]
 SEEDS = range(16)
@@ -207,6 +211,118 @@ def test_mixed_parts_are_merged_level3_parts():
                 if len(members) > 1:
                     assert name.startswith("group_")
                     np.testing.assert_array_equal(mixed.part(name).assembly_from_part.quat_wxyz, [1, 0, 0, 0])
+
+
+# ---------------------------------------------------------------------------------------------------------
+# room for a robot hand, designed assembly order, assemblability
+# ---------------------------------------------------------------------------------------------------------
+
+
+def _bounds(assembly) -> dict[str, np.ndarray]:
+    """World-frame axis-aligned bounds (2, 3) of every part."""
+    out = {}
+    for p in assembly.parts:
+        world = p.assembly_from_part.apply(p.mesh.vertices)
+        out[p.name] = np.stack([world.min(axis=0), world.max(axis=0)])
+    return out
+
+
+def test_cabinet_clearances():
+    """Fingers fit where the hand must hold cabinet parts: beside and under drawers, behind drawer backs, under
+    the top's edge, under the bottom's front edge; the interior hangs on the back until the sides go on."""
+    eps = 1e-9
+    seen: Counter = Counter()
+    for seed in range(40):
+        a = generate("cabinet", "3", np.random.default_rng([seed, 0]), "c")
+        v, bb = a.metadata["variant"], _bounds(a)
+        inner_left, inner_right = bb["side_left"][1, 0], bb["side_right"][0, 0]
+        y_front, back_front = bb["side_left"][0, 1], bb["back"][0, 1]
+        side_top = bb["side_left"][1, 2]
+        fronts = [n for n in a.part_names if n.startswith("door") or (n.startswith("drawer") and n.endswith("_front"))]
+        for k in range(1, v["drawers"] + 1):
+            d = f"drawer_{k}"
+            seen["drawer"] += 1
+            assert bb[f"{d}_side_left"][0, 0] - inner_left >= DRAWER_SIDE_GAP_M - eps, (seed, d)
+            assert inner_right - bb[f"{d}_side_right"][1, 0] >= DRAWER_SIDE_GAP_M - eps, (seed, d)
+            assert bb[f"{d}_bottom"][0, 2] - bb[f"{d}_side_left"][0, 2] >= 0.024 - eps, (seed, d)
+            assert back_front - bb[f"{d}_back"][1, 1] >= DRAWER_BACK_ROOM_M - eps, (seed, d)
+            box_depth = bb[f"{d}_side_left"][1, 1] - bb[f"{d}_side_left"][0, 1]
+            assert box_depth <= bb[f"{d}_bottom"][1, 0] - bb[f"{d}_bottom"][0, 0] + eps, (seed, d)
+            if k < v["drawers"]:  # every drawer but the lowest stands on runners reaching the back
+                seen["runners"] += 1
+                for lr in ("left", "right"):
+                    runner = bb[f"{d}_runner_{lr}"]
+                    assert abs(runner[1, 1] - back_front) < 1e-6, (seed, d)
+                    assert abs(runner[1, 2] - bb[f"{d}_side_left"][0, 2]) < 1e-6, (seed, d)
+        for name in fronts:
+            assert bb[name][0, 2] >= 0.015 - eps, (seed, name)  # clear of the floor
+        front_face = min((bb[n][0, 1] for n in fronts), default=y_front)
+        fronts_top = max((bb[n][1, 2] for n in fronts), default=-np.inf)
+        if v["top"] == "overlay":
+            seen["overlay"] += 1
+            assert front_face - bb["top"][0, 1] >= 0.02 - eps, seed
+            assert inner_left - bb["top"][0, 0] >= bb["side_left"][1, 0] - bb["side_left"][0, 0] + 0.02 - eps, seed
+        else:
+            seen["inset"] += 1
+            assert bb["top"][0, 2] - fronts_top >= 0.034 - eps, seed
+        assert bb["bottom"][1, 1] - bb["bottom"][0, 1] <= bb["bottom"][1, 0] - bb["bottom"][0, 0] + eps, seed
+        if v["base"] == "plinth":
+            seen["plinth"] += 1
+            assert bb["plinth_front"][0, 1] - y_front >= 0.025 - eps, seed
+        if "divider" in bb and (v["drawer_position"] == "bottom" or v["doors"]):
+            seen["divider grip"] += 1
+            below = [n for n in fronts if bb[n][1, 2] < bb["divider"][0, 2]]
+            assert bb["divider"][0, 2] - max(bb[n][1, 2] for n in below) >= 0.034 - eps, seed
+        assert bb["back"][1, 2] <= side_top - 0.002 + eps, seed
+        for name in [n for n in a.part_names if n.startswith(("shelf", "divider")) or "_runner_" in n]:
+            assert abs(bb[name][1, 1] - back_front) < 1e-6, (seed, name)
+    assert all(seen[k] > 0 for k in ("drawer", "runners", "overlay", "inset", "plinth", "divider grip")), seen
+
+
+def test_chair_seat_slats_leave_finger_room():
+    count = 0
+    for seed in range(60):
+        a = generate("chair", "3", np.random.default_rng([seed, 0]), "c")
+        if a.metadata["variant"]["seat"] != "frame_slats":
+            continue
+        bb = _bounds(a)
+        spans = sorted((bb[n][0, 0], bb[n][1, 0]) for n in a.part_names if n.startswith("seat_slat_"))
+        edges = [bb["seat_rail_left"][1, 0]] + [x for span in spans for x in span] + [bb["seat_rail_right"][0, 0]]
+        gaps = np.diff(edges)[::2]  # rail to slat, slat to slat, slat to rail
+        assert gaps.min() >= SEAT_SLAT_GAP_M - 1e-9, (seed, gaps)
+        count += 1
+    assert count > 0
+
+
+def test_cabinet_stages_and_mixed_groups():
+    """Level-3 cabinets record their designed assembly order; mixed groups never straddle another part's stage
+    and never span more than MAX_STAGE_SPAN stages."""
+    for seed in SEEDS:
+        level3, mixed = _object("cabinet", "3", seed), _object("cabinet", "mixed", seed)
+        stages = level3.metadata["stages"]
+        assert sorted(stages) == sorted(level3.part_names)
+        assert "stages" not in mixed.metadata
+        for members in mixed.metadata["groups"].values():
+            lo, hi = min(stages[m] for m in members), max(stages[m] for m in members)
+            assert hi - lo <= MAX_STAGE_SPAN, (seed, members)
+            assert not any(lo < stages[n] < hi for n in level3.part_names if n not in members), (seed, members)
+
+
+@pytest.mark.parametrize("category", CATEGORIES)
+def test_mixed_merges_lock_no_part_in(category):
+    for seed in range(8):
+        mixed = _object(category, "mixed", seed)
+        assert assemblable(mixed), (category, seed, mixed.metadata["groups"])
+
+
+@pytest.mark.parametrize("level", LEVELS)
+@pytest.mark.parametrize("category", CATEGORIES)
+def test_panda_can_assemble(category, level):
+    """The sequence planner (with the Panda hand's grasps) finds an assembly order for a handful of objects."""
+    for seed in range(3):
+        a = generate(category, level, np.random.default_rng([2468, seed]), f"{category}_{level}_{seed}")
+        result = plan_assembly_sequence(a, seed=seed)
+        assert result.success, (category, level, seed, a.metadata["variant"], result.reason, result.blocking)
 
 
 # ---------------------------------------------------------------------------------------------------------

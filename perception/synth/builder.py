@@ -44,6 +44,7 @@ class Builder:
 
     parts: list[SynthPart] = field(default_factory=list)
     joints: list[tuple[str, str]] = field(default_factory=list)
+    stages: dict[str, float] = field(default_factory=dict)
     _index: dict[str, int] = field(default_factory=dict)
 
     # --- adding parts -------------------------------------------------------------------------------------
@@ -94,6 +95,19 @@ class Builder:
                 raise KeyError(f"joint names unknown part {n!r}")
         if a != b and (a, b) not in self.joints and (b, a) not in self.joints:
             self.joints.append((a, b))
+
+    def set_stages(self, order: list[list[str]]) -> None:
+        """Record a designed assembly order: ``order`` lists groups of part names, first placed first, the parts
+        of one group in any order among themselves. The mixed level merges only parts whose stages no other
+        part's stage lies strictly between (see :mod:`perception.synth.merge`)."""
+        for rank, names in enumerate(order):
+            for n in names:
+                if n not in self._index:
+                    raise KeyError(f"stage names unknown part {n!r}")
+                self.stages[n] = float(rank)
+        missing = sorted(set(self._index) - set(self.stages))
+        if missing:
+            raise RuntimeError(f"parts without a stage: {missing}")
 
     def has(self, name: str) -> bool:
         return name in self._index
@@ -150,4 +164,6 @@ class Builder:
         meta = dict(metadata)
         meta["joints"] = [[a, b] for a, b in self.joints]
         meta["modules"] = {p.name: p.module for p in self.parts}
+        if self.stages:
+            meta["stages"] = {p.name: self.stages[p.name] for p in self.parts}
         return Assembly(name=name, parts=parts, metadata=meta)

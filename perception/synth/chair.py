@@ -5,7 +5,8 @@ is drawn from a range; the structure is drawn from these choices (recorded in ``
 
 - ``legs``: 3 or 4 legs (``leg_count``) of ``box``, ``round``, ``tapered`` or ``tapered_round`` section;
 - ``seat``: ``slab`` (one board), ``frame_panel`` (four rails around a thinner panel, tops flush) or
-  ``frame_slats`` (four rails with slats between the front and rear rails);
+  ``frame_slats`` (four rails with slats between the front and rear rails, spaced :data:`SEAT_SLAT_GAP_M` or
+  more apart so that a robot's fingertips fit between them);
 - ``back``: ``panel``, ``vertical_slats`` (optionally on a lower rail) or ``horizontal_slats`` between two
   posts, under a top rail that sits ``between`` the posts or ``over`` them;
 - ``posts``: ``on_seat`` (two posts standing on the seat) or ``leg_extension`` (the rear legs run up to
@@ -23,9 +24,10 @@ from perception.synth.builder import Builder
 from perception.synth.legs import SECTIONS, Leg, PlacedLeg
 from perception.synth.sampling import chance, choice, integer, uniform
 
-__all__ = ["build_chair"]
+__all__ = ["build_chair", "SEAT_SLAT_GAP_M"]
 
 MAX_PARTS = 20
+SEAT_SLAT_GAP_M = 0.022  # least gap between seat slats (and rails): a fingertip with clearance
 _SEAT_PARTS = {"slab": 1, "frame_panel": 5, "frame_slats": 4}
 _STRETCHER_PARTS = {"H": 3, "box": 4, "T": 2, "none": 0}
 
@@ -112,7 +114,8 @@ def build_chair(rng: np.random.Generator, b: Builder) -> dict:
 
     # --- seat -------------------------------------------------------------------------------------------
     seat_z = seat_top - 0.5 * seat_thickness
-    seat_slat_w = uniform(rng, 0.02, min(0.05, (width - 2 * rail_width - 0.016) / 3))
+    # seat slats are held from above across their width: room for a fingertip between them
+    seat_slat_w = uniform(rng, 0.02, min(0.05, (width - 2 * rail_width - 4 * SEAT_SLAT_GAP_M) / 3))
 
     def seat_part_under(x: float, y: float) -> str:
         """The seat part whose top face is under the point (x, y) (rails first)."""
@@ -130,7 +133,7 @@ def build_chair(rng: np.random.Generator, b: Builder) -> dict:
     seat_slats = 0
     if seat == "frame_slats":
         free = width - 2 * rail_width
-        geom = int((free - 0.004) // (seat_slat_w + 0.004))
+        geom = int((free - SEAT_SLAT_GAP_M + 1e-9) // (seat_slat_w + SEAT_SLAT_GAP_M))
         seat_slats = integer(rng, 3, min(6, geom, budget - min_back_slats))
     back_slats = 0
     zone_lo = seat_top
