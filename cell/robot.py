@@ -13,10 +13,8 @@ import numpy as np
 import pybullet_data
 
 from planning.pose import Pose
+from planning.robot_collision import ARM_JOINTS, FINGER_JOINTS, TCP_LINK
 
-ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
-FINGER_JOINTS = ("panda_finger_joint1", "panda_finger_joint2")
-TCP_LINK = "panda_grasptarget"
 HAND_LINK = "panda_hand"
 # Franka's published limits (rad/s, rad/s^2, rad/s^3), joints 1-7
 VELOCITY_LIMITS = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])

@@ -16,12 +16,8 @@ import numpy as np
 import trimesh
 
 from planning.convex import convex_pieces
+from planning.gripper import convex_to_fcl
 from planning.pose import Pose
-
-
-def _fcl_convex(mesh: trimesh.Trimesh) -> fcl.Convex:
-    faces = np.hstack([np.full((len(mesh.faces), 1), 3), mesh.faces]).ravel()
-    return fcl.Convex(np.asarray(mesh.vertices, dtype=np.float64), len(mesh.faces), faces)
 
 
 def _unique_axes(normals: np.ndarray) -> np.ndarray:
@@ -46,7 +42,7 @@ class ConvexPart:
         pieces = convex_pieces(mesh)
         return ConvexPart(
             name=name,
-            geometries=[_fcl_convex(p) for p in pieces],
+            geometries=[convex_to_fcl(p.vertices, p.faces) for p in pieces],
             piece_vertices=[np.asarray(p.vertices) for p in pieces],
             piece_normals=[_unique_axes(p.face_normals) for p in pieces],
             vertices=np.concatenate([p.vertices for p in pieces]),

@@ -28,7 +28,6 @@ whose approach points against it (the hand on the side the part is heading for) 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -38,6 +37,7 @@ import fcl
 import numpy as np
 import trimesh
 
+from planning.convex import mesh_key
 from planning.gripper import (
     FINGER_PAD_WIDTH_M,
     HAND_FROM_TCP,
@@ -156,14 +156,6 @@ def _total_score(c: float, p: float, i: float, t: float, w: GraspWeights) -> flo
 # ---------------------------------------------------------------------------------------------------------
 # mesh helpers
 # ---------------------------------------------------------------------------------------------------------
-
-
-def mesh_key(mesh: trimesh.Trimesh) -> str:
-    """A content hash of a mesh's vertices and faces (for caches)."""
-    h = hashlib.blake2b(digest_size=16)
-    h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
-    h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
-    return h.hexdigest()
 
 
 _BVH_CACHE: OrderedDict[str, fcl.BVHModel] = OrderedDict()

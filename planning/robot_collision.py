@@ -12,10 +12,9 @@ from dataclasses import dataclass
 
 import fcl
 import numpy as np
-import trimesh
 
 from planning.collision import ConvexPart
-from planning.gripper import panda_urdf_path
+from planning.gripper import convex_to_fcl, panda_urdf_path
 from planning.kinematics import load_chain
 
 ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
@@ -40,12 +39,6 @@ def _allowed_pairs() -> set[frozenset]:
 
 
 ALLOWED_SELF_PAIRS = _allowed_pairs()
-
-
-def _convex(mesh: trimesh.Trimesh) -> fcl.Convex:
-    hull = mesh.convex_hull
-    faces = np.hstack([np.full((len(hull.faces), 1), 3), hull.faces]).ravel()
-    return fcl.Convex(np.asarray(hull.vertices, dtype=np.float64), len(hull.faces), faces)
 
 
 def _transform(matrix: np.ndarray) -> fcl.Transform:
@@ -78,7 +71,8 @@ class RobotCollisionChecker:
         for link, meshes in self.chain.collision.items():
             for mesh, link_from_mesh in meshes:
                 hull = mesh.convex_hull
-                self.links.append((link, fcl.CollisionObject(_convex(hull)), link_from_mesh, np.asarray(hull.vertices)))
+                geometry = convex_to_fcl(hull.vertices, hull.faces)
+                self.links.append((link, fcl.CollisionObject(geometry), link_from_mesh, np.asarray(hull.vertices)))
         self.world_names: list[str] = []
         self.world_objects: list[fcl.CollisionObject] = []
         boxes = []
