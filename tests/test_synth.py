@@ -274,6 +274,10 @@ def test_cabinet_clearances():
             below = [n for n in fronts if bb[n][1, 2] < bb["divider"][0, 2]]
             assert bb["divider"][0, 2] - max(bb[n][1, 2] for n in below) >= 0.034 - eps, seed
         assert bb["back"][1, 2] <= side_top - 0.002 + eps, seed
+        doors = [n for n in fronts if n.startswith("door")]
+        for shelf in [n for n in a.part_names if n.startswith("shelf") and doors]:
+            door_top = bb[doors[0]][1, 2]
+            assert bb[shelf][1, 2] <= door_top - 0.025 + eps or bb[shelf][0, 2] >= door_top, (seed, shelf)
         for name in [n for n in a.part_names if n.startswith(("shelf", "divider")) or "_runner_" in n]:
             assert abs(bb[name][1, 1] - back_front) < 1e-6, (seed, name)
     assert all(seen[k] > 0 for k in ("drawer", "runners", "overlay", "inset", "plinth", "divider grip")), seen

@@ -72,6 +72,7 @@ _PLINTH_RECESS = (0.025, 0.05)  # front kick board behind the carcass front
 _BACK_RECESS = (0.025, 0.04)  # an inset back panel in front of the sides' rear edges
 _MIN_REGION = 0.08  # interior height of a door / shelf region next to drawers
 _FRONT_FLOOR_GAP = 0.015  # least height of the fronts' lower edges above the floor
+_DOOR_FINGER_ROOM = 0.025  # shelves' top faces at least this far below the doors' top edge
 
 
 def build_cabinet(rng: np.random.Generator, b: Builder) -> dict:
@@ -223,8 +224,10 @@ def build_cabinet(rng: np.random.Generator, b: Builder) -> dict:
     n_shelves = 0
     if region:
         shelf_t = uniform(rng, 0.008, t)
-        span = region_hi - region_lo
-        n_shelves = min(n_shelves_wanted, int((span - 0.04) // (0.04 + shelf_t)))
+        # behind the doors' top edge (held from above) a fingertip needs room: shelves stay lower
+        shelf_hi = min(region_hi, region_front[1] - 0.5 * gap - _DOOR_FINGER_ROOM) if n_doors else region_hi
+        span = shelf_hi - region_lo
+        n_shelves = max(0, min(n_shelves_wanted, int((span - 0.04) // (0.04 + shelf_t))))
         setback = uniform(rng, *_SHELF_SETBACK)
         step = span / (n_shelves + 1)
         for i in range(n_shelves):
