@@ -157,13 +157,8 @@ def test_blocked_everywhere_is_explained():
     assert "inner" in result.blocking["housing"]
 
 
-KNOWN_GAP = pytest.mark.xfail(strict=True, reason=(
-    "issue 4 open: the mixed level can merge a table's legs, top and shelf into one part around the stretchers, "
-    "which then have no collision-free grasp at their target (the merge check plans without grasps)"))
-
-
 @pytest.mark.parametrize("category,level", [
-    ("chair", "3"), ("chair", "mixed"), ("table", "3"), pytest.param("table", "mixed", marks=KNOWN_GAP),
+    ("chair", "3"), ("chair", "mixed"), ("table", "3"), ("table", "mixed"),
     ("cabinet", "3"), ("cabinet", "mixed"),
 ])
 def test_procedural_objects_have_a_sequence(category, level):

@@ -9,7 +9,13 @@ merges random connected sub-assemblies of that same level-3 object (the mixed ob
 generator state merges the level-3 object drawn from the same state). See the category modules for the
 structural choices; they are recorded in ``assembly.metadata["variant"]``, with ``"category"``,
 ``"level"``, ``"generator"``, ``"joints"`` (the designed contacts, pairs of part names) and ``"modules"``
-(the sub-assembly each part belongs to).
+(the sub-assembly each part belongs to); level-3 objects also carry ``"stages"`` (a designed assembly order:
+part name -> rank, equal ranks in any order) and cabinets ``"max_stage_span"``, which the mixed level uses.
+
+Every object is designed to be assembled by a robot with a parallel-jaw hand (a Franka Panda), one part after
+the other: parts leave room for the fingers where the hand must hold them, and mixed merges are kept to those
+that lock no part in (:mod:`perception.synth.merge`). ``planning.sequence.plan_assembly_sequence`` finds an
+order for them.
 """
 
 from __future__ import annotations

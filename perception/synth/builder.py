@@ -45,6 +45,7 @@ class Builder:
     parts: list[SynthPart] = field(default_factory=list)
     joints: list[tuple[str, str]] = field(default_factory=list)
     stages: dict[str, float] = field(default_factory=dict)
+    max_stage_span: float | None = None
     _index: dict[str, int] = field(default_factory=dict)
 
     # --- adding parts -------------------------------------------------------------------------------------
@@ -96,11 +97,13 @@ class Builder:
         if a != b and (a, b) not in self.joints and (b, a) not in self.joints:
             self.joints.append((a, b))
 
-    def set_stages(self, order: list[list[str]]) -> None:
-        """Record a designed assembly order: ``order`` lists groups of part names, first placed first, the parts
-        of one group in any order among themselves. The mixed level merges only parts whose stages no other
-        part's stage lies strictly between (see :mod:`perception.synth.merge`)."""
-        for rank, names in enumerate(order):
+    def set_stages(self, order: list[list[str]], max_span: int | None = None) -> None:
+        """Record a designed assembly order: ``order`` lists groups of part names (empty ones skipped), first
+        placed first, the parts of one group in any order among themselves. The mixed level merges only parts
+        whose stages no other part's stage lies strictly between, and (with ``max_span``) whose stages differ by
+        at most ``max_span`` (see :mod:`perception.synth.merge`)."""
+        self.max_stage_span = None if max_span is None else float(max_span)
+        for rank, names in enumerate(n for n in order if n):
             for n in names:
                 if n not in self._index:
                     raise KeyError(f"stage names unknown part {n!r}")
@@ -166,4 +169,6 @@ class Builder:
         meta["modules"] = {p.name: p.module for p in self.parts}
         if self.stages:
             meta["stages"] = {p.name: self.stages[p.name] for p in self.parts}
+            if self.max_stage_span is not None:
+                meta["max_stage_span"] = self.max_stage_span
         return Assembly(name=name, parts=parts, metadata=meta)

@@ -14,10 +14,11 @@ drawer is five boards (front, two sides, back, bottom). Structural choices (reco
   they fill it; a ``divider`` board separates them from the rest, which holds ``shelves`` (0-4) behind
   ``doors`` (0-2).
 
-Every part leaves room for a parallel-jaw hand (a Franka Panda: 8 cm opening, fingertips about 1.4 cm thick and
-1.8 cm wide, a palm 3.9 cm behind the pads and about 21 cm long along the closing axis) to hold it at its place
-among the parts placed before it, as real furniture leaves room for hands and hardware. A board is held across
-its thickness at an edge, the palm then spanning about 10 cm to both sides of the board; so:
+Every part leaves room for a parallel-jaw hand (a Franka Panda: 8 cm opening; fingers 2 cm wide, 1.4 cm thick at
+the tip and 2.5 cm thick 3 cm behind the pads; a palm 3.9 cm behind the pads, 21 cm long along the closing
+axis) to hold it at its place among the parts placed before it, as real furniture leaves room for hands and
+hardware. A board is held across its thickness at an edge, the palm then spanning about 10 cm to both sides of
+the board; so:
 
 - the plinth's front kick board is recessed (a toe kick): a finger fits under the bottom's front edge;
 - the back panel is set in from the sides' rear edges, so a carcass side can be held at its rear edge when
@@ -33,17 +34,19 @@ its thickness at an edge, the palm then spanning about 10 cm to both sides of th
 - cabinets are no deeper than wide: horizontal boards (bottom, inset top, shelves) are held at their front
   edge (at their sides stand the carcass sides, at their back the back panel), and a hand picks the edges
   nearest a part's middle;
-- doors and drawer fronts are held at their top edge, from above, before whatever lies above them is placed.
+- doors and drawer fronts are held at their top edge, from above, before whatever lies above them is placed;
+  shelves stay 2.5 cm below the doors' top edge, so a fingertip fits behind it; the fronts clear the floor by
+  more than a planner's contact tolerance (a front standing on the floor would seem to hold up the drawer box
+  behind it).
 
-The designed assembly order (recorded for the mixed level, :meth:`Builder.set_stages`): base, bottom, back,
+The designed assembly order (recorded for the mixed level, :meth:`Builder.set_stages`): base, bottom and back,
 then the interior from the bottom up (runners, drawer sides, drawer bottom, drawer back, drawer front, one
 drawer after the other; shelves; doors; the divider after the fronts below it), then the carcass sides, then
-the top. The carcass sides go on
-late: a hand holding a drawer side from above spans the gap to the carcass side. Until then the interior hangs
-on the back and the bottom (shelves, divider and runners reach the back; the fronts rest on the bottom board's
-front edge or on one another). The back stops a few millimetres below the sides' top, so that once the top is
-off the carcass sides, not the back, are the highest parts (a planner taking the highest parts out first then
-finds this order directly).
+the top. The carcass sides go on late: a hand holding a drawer side from above spans the gap to the carcass
+side. Until then the interior hangs on the back and the bottom (shelves, divider and runners reach the back;
+the fronts rest on the bottom board's front edge or on one another). The back stops a few millimetres below the
+sides' top, so that once the top is off the carcass sides, not the back, are the highest parts (a planner
+taking the highest parts out first then finds this order directly).
 
 The part count stays within 20: drawers are drawn first, then the base, divider, doors and shelves within
 what is left.
@@ -62,7 +65,7 @@ __all__ = ["build_cabinet", "DRAWER_SIDE_GAP_M", "DRAWER_BACK_ROOM_M"]
 MAX_PARTS = 20
 DRAWER_SIDE_GAP_M = 0.022  # least gap between a drawer side and the carcass side (a fingertip and clearance)
 DRAWER_BACK_ROOM_M = 0.105  # least gap between a drawer's back and the carcass back (half the palm's length)
-_DRAWER_RAISE = (0.024, 0.03)  # drawer bottom's underside above the lower edges of the drawer sides
+_DRAWER_RAISE = (0.03, 0.035)  # drawer bottom's underside above the lower edges of the drawer sides
 _DRAWER_BACK_ABOVE = 0.022  # least height of a drawer's back above the drawer bottom
 _SHELF_SETBACK = (0.0, 0.015)
 _TOP_OVERHANG_FRONT = (0.02, 0.03)  # overlay top beyond the fronts' front faces
@@ -95,6 +98,7 @@ def build_cabinet(rng: np.random.Generator, b: Builder) -> dict:
     budget -= n_doors
     n_shelves_wanted = integer(rng, 0, min(4, budget)) if region else 0
     top = choice(rng, ("overlay", "inset"))
+    drawer_position = ("full" if not divider else choice(rng, ("top", "bottom"))) if n_drawers else "none"
     # an overlay back covers the sides' rear edges: only where no front covers their front edges (see the notes)
     back = choice(rng, ("inset", "overlay")) if n_drawers + n_doors == 0 else "inset"
 
@@ -106,6 +110,9 @@ def build_cabinet(rng: np.random.Generator, b: Builder) -> dict:
     overhang_side = uniform(rng, *_TOP_OVERHANG_SIDE) if top == "overlay" else 0.0
     overhang_front = front_t + uniform(rng, *_TOP_OVERHANG_FRONT) if top == "overlay" else 0.0
     grip = uniform(rng, *_GRIP_GAP) if top == "inset" else 0.0
+    # a front below the divider stops a finger-pull gap short of it (the divider is held at its front edge,
+    # through that gap); the front above the divider rests on its front edge
+    div_grip = uniform(rng, *_GRIP_GAP) if divider and (drawer_position == "bottom" or n_doors) else 0.0
     # no deeper than wide: horizontal boards are held at their front edges (see the module notes)
     depth_lo = 0.28 if n_drawers else 0.2
     width = uniform(rng, max(0.25, depth_lo / 0.9 + 2 * t), 0.6 - 2 * overhang_side)
@@ -121,7 +128,8 @@ def build_cabinet(rng: np.random.Generator, b: Builder) -> dict:
     d_raise = uniform(rng, *_DRAWER_RAISE)
     runner_h = uniform(rng, 0.01, 0.015)
     clear = uniform(rng, 0.006, 0.012)
-    top_clear = max(clear, grip + 0.003)  # above the top-most box: under an inset top, below the finger-pull gap
+    # above the top-most box: below the top front's top edge (where a finger-pull gap cuts the front short)
+    top_clear = max(clear, (div_grip if drawer_position == "bottom" else grip) + 0.003)
     box_min = d_raise + d_bottom_t + _DRAWER_BACK_ABOVE
     stack = (n_drawers - 1) * (clear + runner_h) + top_clear if n_drawers else 0.0  # band height less the boxes
     if n_drawers:
@@ -174,13 +182,11 @@ def build_cabinet(rng: np.random.Generator, b: Builder) -> dict:
 
     # --- interior layout ----------------------------------------------------------------------------------
     interior = zi1 - zi0
-    drawer_position = "none"
     box_h = band_lo = 0.0
     region_lo, region_hi = zi0, zi1
-    div_lo = div_mid = div_grip = 0.0
+    div_lo = div_mid = 0.0
     if n_drawers:
         if divider:
-            drawer_position = choice(rng, ("top", "bottom"))
             box_max = (interior - t - _MIN_REGION - stack) / n_drawers
             box_h = uniform(rng, box_min, min(0.1, box_max))
             band = n_drawers * box_h + stack
@@ -192,16 +198,12 @@ def build_cabinet(rng: np.random.Generator, b: Builder) -> dict:
                 div_lo = zi1 - band - t
                 band_lo = div_lo + t
                 region_lo, region_hi = zi0, div_lo
-            # a front below it stops a finger-pull gap short of it (the divider is held at its front edge, through
-            # that gap); the front above it rests on its front edge
-            div_grip = uniform(rng, *_GRIP_GAP) if drawer_position == "bottom" or n_doors else 0.0
             b.add_box("divider", board_size, (0.0, y_board, div_lo + 0.5 * t), "shelves")
             b.join("divider", "side_left")
             b.join("divider", "side_right")
             b.join("divider", "back")
             div_mid = div_lo + 0.5 * t
         else:
-            drawer_position = "full"
             band_lo = zi0
             box_h = (interior - stack) / n_drawers
 
@@ -361,8 +363,9 @@ def build_cabinet(rng: np.random.Generator, b: Builder) -> dict:
     else:
         interior = drawers + shelves + doors
     base_names = [p.name for p in b.parts if p.module == "base"]
-    order = [base_names, ["bottom"], ["back"], *interior, ["side_left", "side_right"], ["top"]]
-    b.set_stages([names for names in order if names])
+    carcass = [["back"], ["bottom"]] if raise_h > 0.0 else [["bottom"], ["back"]]  # a raised bottom hangs on the back
+    order = [base_names, *carcass, *interior, ["side_left", "side_right"], ["top"]]
+    b.set_stages(order, max_span=4)  # no group spanning more: a closed box has no free edge to hold it by
 
     return {
         "base": base,

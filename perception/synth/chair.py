@@ -5,8 +5,7 @@ is drawn from a range; the structure is drawn from these choices (recorded in ``
 
 - ``legs``: 3 or 4 legs (``leg_count``) of ``box``, ``round``, ``tapered`` or ``tapered_round`` section;
 - ``seat``: ``slab`` (one board), ``frame_panel`` (four rails around a thinner panel, tops flush) or
-  ``frame_slats`` (four rails with slats between the front and rear rails, spaced :data:`SEAT_SLAT_GAP_M` or
-  more apart so that a robot's fingertips fit between them);
+  ``frame_slats`` (four rails with slats between the front and rear rails);
 - ``back``: ``panel``, ``vertical_slats`` (optionally on a lower rail) or ``horizontal_slats`` between two
   posts, under a top rail that sits ``between`` the posts or ``over`` them;
 - ``posts``: ``on_seat`` (two posts standing on the seat) or ``leg_extension`` (the rear legs run up to
@@ -14,6 +13,10 @@ is drawn from a range; the structure is drawn from these choices (recorded in ``
 - ``stretchers``: ``H``, ``box`` (``staggered`` or not) or ``none`` with four legs; ``T`` or ``none`` with
   three;
 - ``arms``: 0 or 1 (an arm rest on a short post each side, its rear end against the back post).
+
+Slats (seat slats, vertical and horizontal back slats) stand :data:`SLAT_GAP_M` or more apart, and as far from
+the rails and posts beside them, so that a robot's fingertips fit between them: a slat can then be held with
+its neighbours in place.
 """
 
 from __future__ import annotations
@@ -24,10 +27,10 @@ from perception.synth.builder import Builder
 from perception.synth.legs import SECTIONS, Leg, PlacedLeg
 from perception.synth.sampling import chance, choice, integer, uniform
 
-__all__ = ["build_chair", "SEAT_SLAT_GAP_M"]
+__all__ = ["build_chair", "SLAT_GAP_M"]
 
 MAX_PARTS = 20
-SEAT_SLAT_GAP_M = 0.022  # least gap between seat slats (and rails): a fingertip with clearance
+SLAT_GAP_M = 0.022  # least gap between slats and to the rails or posts beside them: a fingertip with clearance
 _SEAT_PARTS = {"slab": 1, "frame_panel": 5, "frame_slats": 4}
 _STRETCHER_PARTS = {"H": 3, "box": 4, "T": 2, "none": 0}
 
@@ -115,7 +118,7 @@ def build_chair(rng: np.random.Generator, b: Builder) -> dict:
     # --- seat -------------------------------------------------------------------------------------------
     seat_z = seat_top - 0.5 * seat_thickness
     # seat slats are held from above across their width: room for a fingertip between them
-    seat_slat_w = uniform(rng, 0.02, min(0.05, (width - 2 * rail_width - 4 * SEAT_SLAT_GAP_M) / 3))
+    seat_slat_w = uniform(rng, 0.02, min(0.05, (width - 2 * rail_width - 4 * SLAT_GAP_M) / 3))
 
     def seat_part_under(x: float, y: float) -> str:
         """The seat part whose top face is under the point (x, y) (rails first)."""
@@ -133,23 +136,23 @@ def build_chair(rng: np.random.Generator, b: Builder) -> dict:
     seat_slats = 0
     if seat == "frame_slats":
         free = width - 2 * rail_width
-        geom = int((free - SEAT_SLAT_GAP_M + 1e-9) // (seat_slat_w + SEAT_SLAT_GAP_M))
+        geom = int((free - SLAT_GAP_M + 1e-9) // (seat_slat_w + SLAT_GAP_M))
         seat_slats = integer(rng, 3, min(6, geom, budget - min_back_slats))
     back_slats = 0
     zone_lo = seat_top
     zone_hi = post_top - drop - (0.0 if top_rail == "over" else rail_h)
     zone = zone_hi - zone_lo
-    slat_w = uniform(rng, 0.015, 0.04)
+    slat_w = uniform(rng, 0.015, max(0.015, min(0.04, (inner_width - 3 * SLAT_GAP_M) / 2)))
     slat_t = uniform(rng, 0.006, min(0.014, 0.8 * post_w))
     if back == "vertical_slats":
-        geom = int((inner_width - 0.006) // (slat_w + 0.006))
+        geom = int((inner_width - SLAT_GAP_M + 1e-9) // (slat_w + SLAT_GAP_M))
         back_slats = integer(rng, 2, min(6, geom, budget - seat_slats))
     elif back == "horizontal_slats":
-        margin_top = uniform(rng, 0.01, 0.03)
-        margin_bottom = uniform(rng, 0.02, 0.3 * zone)
+        margin_top = uniform(rng, SLAT_GAP_M, 0.035)
+        margin_bottom = uniform(rng, SLAT_GAP_M, max(SLAT_GAP_M, 0.3 * zone))
         slat_h = uniform(rng, 0.015, 0.035)
         avail = zone - margin_top - margin_bottom
-        geom = int((avail + 0.01) // (slat_h + 0.01))
+        geom = int((avail + SLAT_GAP_M + 1e-9) // (slat_h + SLAT_GAP_M))
         back_slats = integer(rng, 1, min(4, geom, budget - seat_slats))
 
     # --- legs ---------------------------------------------------------------------------------------------
@@ -344,6 +347,28 @@ def build_chair(rng: np.random.Generator, b: Builder) -> dict:
             b.join(rest, stand)
             b.join(rest, post_name)
             b.join(stand, seat_part_under(sx * x_post, y_arm_post))
+
+    # --- designed assembly order (the mixed level keeps merges consistent with it) -----------------------
+    names = [p.name for p in b.parts]
+
+    def named(*prefixes: str) -> list[str]:
+        return [n for n in names if n.startswith(prefixes)]
+
+    # a seat panel or slats go in before the last rail around them, a back panel or slats before the top rail
+    b.set_stages(
+        [
+            named("leg_"),
+            named("stretcher_"),
+            ["seat"] if seat == "slab" else ["seat_rail_front", "seat_rail_rear", "seat_rail_left"],
+            named("seat_panel", "seat_slat_"),
+            named("seat_rail_right"),
+            named("back_post_"),
+            named("back_lower_rail"),
+            named("back_panel", "back_slat_"),
+            ["back_top_rail"],
+            named("arm_"),
+        ]
+    )
 
     return {
         "legs": section,

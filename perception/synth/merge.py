@@ -10,11 +10,12 @@ centred at its bounding-box centre with the assembly's axes.
 
 Merges must keep the object assemblable by a robot, one part after the other:
 
-- where the generator recorded a designed assembly order (``metadata["stages"]``, cabinets), a group never
-  straddles another part's stage (that part would have to go in after one member and before another: a carcass
-  side merged with the bottom would have to go in before the drawers, whose sides are held from above, over the
-  carcass side's place) and spans at most :data:`MAX_STAGE_SPAN` stages (no closed box without a free edge to
-  hold it by);
+- where the generator recorded a designed assembly order (``metadata["stages"]``: chairs, cabinets), a group
+  never straddles another part's stage (that part would have to go in after one member and before another: a
+  cabinet side merged with the bottom would have to go in before the drawers, whose sides are held from above,
+  over the cabinet side's place; a chair's top rail merged with its posts leaves no way in for the slats
+  between them) and, with ``metadata["max_stage_span"]``, spans at most that many stages (cabinets: no closed
+  box without a free edge to hold it by);
 - every merge is checked with the sequence planner without grasps (:func:`assemblable`: straight-line
   insertions, every part kept in contact with the floor), which rejects merges that lock a part in (a carcass
   merged with its door around a shelf, a seat frame around its slats). A rejected merge is redrawn from the same
@@ -36,7 +37,6 @@ from planning.pose import Pose
 
 __all__ = ["merge_parts", "assemblable"]
 
-MAX_STAGE_SPAN = 4  # a group's stages differ by at most this much: no closed box without a free edge to hold
 ATTEMPTS = 6  # random merges tried before drawing fewer merges
 FEWER_ATTEMPTS = 6  # then tries with fewer and fewer merges
 
@@ -46,10 +46,11 @@ class _Groups:
     designed assembly stages, only merges groups whose stages no other part's stage lies strictly between (such
     a part would have to go in after one member of the group and before another)."""
 
-    def __init__(self, n: int, stages: list[float] | None = None) -> None:
+    def __init__(self, n: int, stages: list[float] | None = None, max_span: float | None = None) -> None:
         self.parent = list(range(n))
         self.count = n
         self.stages = stages
+        self.max_span = max_span
 
     def find(self, i: int) -> int:
         while self.parent[i] != i:
@@ -65,7 +66,7 @@ class _Groups:
         inside = [j for j in range(len(self.parent)) if self.find(j) in roots]
         lo = min(self.stages[j] for j in inside)
         hi = max(self.stages[j] for j in inside)
-        if hi - lo > MAX_STAGE_SPAN:
+        if self.max_span is not None and hi - lo > self.max_span:
             return False
         outside = set(range(len(self.parent))) - set(inside)
         return not any(lo < self.stages[j] < hi for j in outside)
@@ -113,6 +114,7 @@ def _draw_groups(
     rng: np.random.Generator,
     fewer: int = 0,
     stages: list[float] | None = None,
+    max_span: float | None = None,
 ) -> list[list[int]]:
     """Members of each part of one random merge (lists of level-3 indices, in order of their first member).
 
@@ -122,7 +124,7 @@ def _draw_groups(
     the parts' ``stages`` allow (see :class:`_Groups`)."""
     lo = 2 if fewer <= 0 else max(2, n - max(1, (n - 2) >> fewer))
     target = integer(rng, lo, n - 1)
-    groups = _Groups(n, stages)
+    groups = _Groups(n, stages, max_span)
     p_module = uniform(rng, 0.2, 1.0)
     module_components = [
         comp
@@ -219,7 +221,7 @@ def _build(level3: Assembly, ordered: list[list[int]], name: str) -> tuple[Assem
             seen.add((na, nb))
             joints.append([na, nb])
 
-    meta = {k: v for k, v in level3.metadata.items() if k not in ("joints", "modules", "stages")}
+    meta = {k: v for k, v in level3.metadata.items() if k not in ("joints", "modules", "stages", "max_stage_span")}
     meta["level"] = "mixed"
     meta["joints"] = joints
     meta["modules"] = group_modules
@@ -254,8 +256,10 @@ def merge_parts(level3: Assembly, rng: np.random.Generator, name: str, check: bo
     modules = [level3.metadata["modules"][nm] for nm in names]
     stage_of = level3.metadata.get("stages")
     stages = None if stage_of is None else [float(stage_of[nm]) for nm in names]
+    max_span = level3.metadata.get("max_stage_span")
     for attempt in range(ATTEMPTS + FEWER_ATTEMPTS):
-        ordered = _draw_groups(n, edges, modules, rng, fewer=max(0, attempt - ATTEMPTS + 1), stages=stages)
+        fewer = max(0, attempt - ATTEMPTS + 1)
+        ordered = _draw_groups(n, edges, modules, rng, fewer=fewer, stages=stages, max_span=max_span)
         if len(ordered) >= n:  # no merge the stages allow (not seen with the generators here): draw again
             continue
         assembly, convex = _build(level3, ordered, name)
@@ -264,7 +268,7 @@ def merge_parts(level3: Assembly, rng: np.random.Generator, name: str, check: bo
     # last resort (not reached over thousands of objects): one joint, each in turn, in random order
     fallback = None
     for k in rng.permutation(len(edges)):
-        groups = _Groups(n, stages)
+        groups = _Groups(n, stages, max_span)
         if not groups.merge(list(edges[int(k)])):
             continue
         ordered = sorted(

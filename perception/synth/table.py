@@ -28,6 +28,7 @@ from perception.synth.sampling import chance, choice, uniform
 __all__ = ["build_table"]
 
 _ROUND_TOP_SIDES = 48
+_CLEAT_OVERHANG = 0.03  # least overhang of a pedestal's top cleat beyond the column
 
 
 def _add_top(b: Builder, shape: str, width: float, depth: float, thickness: float, z: float) -> None:
@@ -156,7 +157,9 @@ def _pedestal_base(
     column = Leg(section, col_w, col_w, under - cleat_t - plate_t)
     b.add_leg("column", PlacedLeg(column, 0.0, 0.0, plate_t), "base")
     if cleat:
-        size = uniform(rng, max(0.3 * small, col_w + 0.03), 0.6 * small)
+        # overhanging the column by 3 cm or more all round: a fingertip fits under its edge
+        least = col_w + 2 * _CLEAT_OVERHANG
+        size = uniform(rng, max(0.3 * small, least), max(0.6 * small, least))
         extents = np.array([size, size, cleat_t])
         if shape == "rect":
             vertices, faces = box(extents)
@@ -180,7 +183,8 @@ def _pedestal_base(
     else:
         foot_len = max(0.06, uniform(rng, 0.35, 0.48) * small - r)
         foot_w = uniform(rng, 0.015, min(0.04, 1.6 * r))
-        foot_h = uniform(rng, 0.015, 0.04)
+        # no lower than wide: held from above across its width (its fixture pad, a box, spreads beside a turned foot)
+        foot_h = uniform(rng, max(0.02, foot_w), max(0.04, foot_w + 0.01))
         start = 0.0 if n_feet == 4 and (section == "box" or chance(rng, 0.5)) else 0.25 * math.pi
         if n_feet == 3:
             start = choice(rng, (0.5 * math.pi, -0.5 * math.pi))
@@ -287,6 +291,23 @@ def build_table(rng: np.random.Generator, b: Builder) -> dict:
     variant: dict = {"top": shape, "base": base}
     {"legs": _legs_base, "pedestal": _pedestal_base, "trestle": _trestle_base}[base](
         rng, b, shape, width, depth, under, variant
+    )
+    # designed assembly order, from the floor up (the mixed level keeps merges consistent with it)
+    names = [p.name for p in b.parts]
+
+    def named(*prefixes: str) -> list[str]:
+        return [n for n in names if n.startswith(prefixes)]
+
+    b.set_stages(
+        [
+            named("leg_", "base_plate", "foot_", "trestle_left_foot", "trestle_right_foot"),
+            named("stretcher_low", "stretcher_left", "stretcher_right", "stretcher_middle"),
+            named("column", "trestle_left_p", "trestle_right_p"),  # columns, posts, planks
+            named("shelf"),  # on the side stretchers, before the front and rear ones at its edges
+            named("stretcher_front", "stretcher_rear") + (["stretcher"] if b.has("stretcher") else []),
+            named("apron_", "top_cleat", "trestle_left_bar", "trestle_right_bar"),
+            ["top"],
+        ]
     )
     variant.update(
         height=round(height, 4), width=round(width, 4), depth=round(depth, 4), top_thickness=round(top_t, 4)
