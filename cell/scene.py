@@ -42,9 +42,15 @@ class FixtureConfig:
 
 @dataclass(frozen=True)
 class KittingConfig:
-    origin_xy: tuple[float, float]
-    size_xy: tuple[float, float]
+    """The ring around the robot base where loose parts lie (metres): footprint centres between
+    ``inner_radius`` and ``outer_radius`` from the base, ``gap`` between footprints, nothing within
+    ``jig_margin`` of the assembly's footprint on the jig."""
+
+    inner_radius: float
+    outer_radius: float
     pedestal_height: float
+    gap: float
+    jig_margin: float
 
 
 @dataclass(frozen=True)
@@ -107,6 +113,15 @@ class _Reader:
             raise SceneError(f"{self.source}: [{section}] {key}: {exc}") from exc
 
 
+def _kitting(r: _Reader) -> KittingConfig:
+    kitting = KittingConfig(*(r.number("kitting", key, positive=True)
+                              for key in ("inner_radius", "outer_radius", "pedestal_height", "gap", "jig_margin")))
+    if kitting.outer_radius <= kitting.inner_radius:
+        raise SceneError(f"{r.source}: [kitting] outer_radius ({kitting.outer_radius}) must exceed inner_radius "
+                         f"({kitting.inner_radius})")
+    return kitting
+
+
 def load_scene(path: str | Path | None = None) -> Scene:
     """Load a scene file (default: the bundled ``scenes/cell.toml``)."""
     path = Path(path) if path is not None else scenes_root() / DEFAULT_SCENE
@@ -130,8 +145,7 @@ def load_scene(path: str | Path | None = None) -> Scene:
         table=TableConfig(r.number("table", "top_z"), r.numbers("table", "size", 3),
                           r.numbers("table", "centre_xy", 2)),
         fixture=FixtureConfig(r.pose("fixture", "world_from_assembly")),
-        kitting=KittingConfig(r.numbers("kitting", "origin_xy", 2), r.numbers("kitting", "size_xy", 2),
-                              r.number("kitting", "pedestal_height", positive=True)),
+        kitting=_kitting(r),
         camera=CameraConfig(r.numbers("camera", "eye", 3), r.numbers("camera", "target", 3),
                             r.number("camera", "fov_deg", positive=True), int(width), int(height)),
         random_seed=seed,

@@ -91,7 +91,8 @@ class Assembly:
 # ---------------------------------------------------------------------------------------------------------
 
 
-def _load_mesh(path: Path, where: str, scale_to_metres: float) -> trimesh.Trimesh:
+def load_mesh(path: Path, where: str, scale_to_metres: float = 1.0) -> trimesh.Trimesh:
+    """Load and validate one mesh file (metres after ``scale_to_metres``); :class:`AssemblyError` names ``where``."""
     if not path.is_file():
         raise AssemblyError(f"{where}: mesh file {path} does not exist")
     try:
@@ -190,7 +191,7 @@ def read_assembly(folder: str | os.PathLike) -> Assembly:
     for entry in data["parts"]:
         where = f"{json_path}: part {entry['name']!r}"
         pose = _parse_pose(entry.get("pose"), where)
-        mesh = _load_mesh(folder / entry["mesh"], where, scale)
+        mesh = load_mesh(folder / entry["mesh"], where, scale)
         parts.append(AssemblyPart(entry["name"], mesh, Pose(pose.position * scale, pose.quat_wxyz), entry["mesh"]))
     metadata = {k: v for k, v in data.items() if k not in ("name", "parts", "units", "up")}
     return Assembly(name=str(data.get("name", folder.name)), parts=parts, metadata=metadata)

@@ -27,6 +27,26 @@ def _unique_axes(normals: np.ndarray) -> np.ndarray:
     return normals[np.sort(keep)]
 
 
+def _edge_axes(vertices: np.ndarray, coplanar_rad: float = 1e-6) -> np.ndarray:
+    """Unit edge directions (sign-free, unique) of the convex hull of ``vertices`` (N, 3); the diagonals that
+    triangulate a flat face are not edges."""
+    try:
+        hull = trimesh.convex.convex_hull(vertices)
+    except Exception:  # flat or degenerate piece: every pair of its points may bound an edge, use its box axes
+        return np.eye(3)
+    real = np.asarray(hull.face_adjacency_angles) > coplanar_rad
+    ends = np.asarray(hull.vertices)[np.asarray(hull.face_adjacency_edges)[real]]
+    directions = ends[:, 1] - ends[:, 0]
+    length = np.linalg.norm(directions, axis=1)
+    directions = directions[length > 1e-12] / length[length > 1e-12, None]
+    if len(directions) == 0:
+        return np.eye(3)
+    lead = np.argmax(np.abs(directions), axis=1)  # sign-free: the largest component made positive
+    directions *= np.sign(directions[np.arange(len(directions)), lead])[:, None]
+    _, keep = np.unique(np.round(directions, 6), axis=0, return_index=True)
+    return directions[np.sort(keep)]
+
+
 @dataclass
 class ConvexPart:
     """A part's convex pieces: FCL geometry and hull vertices, part frame, metres."""
@@ -36,6 +56,7 @@ class ConvexPart:
     piece_vertices: list[np.ndarray]
     piece_normals: list[np.ndarray]  # unique face-normal axes of each piece (sign-free), part frame
     vertices: np.ndarray = field(repr=False)  # all hull vertices stacked, for bounds
+    _edge_axes: dict[int, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
     @staticmethod
     def from_mesh(name: str, mesh: trimesh.Trimesh) -> ConvexPart:
@@ -47,6 +68,13 @@ class ConvexPart:
             piece_normals=[_unique_axes(p.face_normals) for p in pieces],
             vertices=np.concatenate([p.vertices for p in pieces]),
         )
+
+    def piece_edge_axes(self, k: int) -> np.ndarray:
+        """(E, 3) unit directions of the edges of piece ``k`` (part frame, sign-free, duplicates removed): the
+        edges between faces that are not coplanar, computed once from the piece's hull."""
+        if k not in self._edge_axes:
+            self._edge_axes[k] = _edge_axes(self.piece_vertices[k])
+        return self._edge_axes[k]
 
     def piece_bounds(self, world_from_part: Pose) -> np.ndarray:
         """(K, 2, 3) world bounds of each piece."""
@@ -132,3 +160,23 @@ def signed_distance(part_a: ConvexPart, world_from_a: Pose, part_b: ConvexPart, 
         if -depth < best.distance_m:
             best = DistanceResult(-depth, normal_ab=normal)
     return best
+
+
+def shrunk(part: ConvexPart, margin_m: float) -> ConvexPart:
+    """``part`` with every convex piece pulled in by about ``margin_m`` on each side (scaled about its centre
+    along the part frame's axes; exact for axis-aligned boxes). A held part checked this way may slide along the
+    faces it touches at its target without counting as a collision, while still colliding with anything it
+    would cut into by more than the margin."""
+    pieces = []
+    for vertices in part.piece_vertices:
+        low, high = vertices.min(axis=0), vertices.max(axis=0)
+        centre, extent = 0.5 * (low + high), high - low
+        scale = np.clip((extent - 2.0 * margin_m) / np.maximum(extent, 1e-12), 0.05, 1.0)
+        pieces.append(trimesh.convex.convex_hull((vertices - centre) * scale + centre))
+    return ConvexPart(
+        name=part.name,
+        geometries=[convex_to_fcl(p.vertices, p.faces) for p in pieces],
+        piece_vertices=[np.asarray(p.vertices) for p in pieces],
+        piece_normals=[_unique_axes(p.face_normals) for p in pieces],
+        vertices=np.concatenate([p.vertices for p in pieces]),
+    )

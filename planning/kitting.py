@@ -2,19 +2,26 @@
 
 Every part starts at rest in one of its stable poses (trimesh's ``compute_stable_poses``) on a pedestal in the
 kitting area. A pedestal is a box under the part, inset from its footprint like the jig pads
-(:mod:`planning.fixture`), so that fingers can reach under a board's edge. For each part the planner picks the
-most probable stable pose in which some grasp works both at the pick (clear of the pedestal, the table and
-the neighbouring parts) and at the target (clear of the parts placed before it), and lays the parts out in rows.
+(:mod:`planning.fixture`), so that fingers can reach under a board's edge.
 
-Limits of this first version: the layout is rows in one rectangle, the robot's reach is not checked, and a
-grasp is checked against its own pedestal only (the 10 cm gap between parts stands for the hand's room).
+The kitting area is a ring around the robot base on the table (:class:`KittingArea`): between an inner radius
+(clear of the robot's base) and an outer radius (within reach), inside the table, outside keep-out rectangles
+(the jig with the assembly growing on it, plus room for the hand). Each part's footprint is a rectangle turned
+so that its long side runs along the ring (tangential). Candidate places are tried nearest to the jig first.
 
-Frames: ``kitting`` poses are in the world frame of the cell (metres, +z up, table top at ``table_z_m``).
+For each part the planner takes the most probable stable pose and the first place where
+
+- the footprint, grown by the gap, overlaps no other part's and no keep-out rectangle and lies on the table;
+- some grasp works at the pick, clear of its pedestal, the table and the neighbouring parts and pedestals, and
+  the same grasp works at the target (``grasp_ok_at_target``) and the robot reaches it (``reachable``);
+- the grasps already chosen for the neighbours stay clear of the new part.
+
+Frames: every pose is in the world frame of the cell (metres, +z up, table top at ``table_z_m``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +31,10 @@ from planning.fixture import FINGER_CLEARANCE_M, MIN_PAD_FRACTION
 from planning.grasp import Grasp, feasible_grasps
 from planning.pose import Pose
 
-LAYOUT_GAP_M = 0.1  # free space between neighbouring parts' footprints, for the hand
+NEIGHBOUR_REACH_M = 0.25  # parts whose footprints are farther apart than this cannot touch each other's hand
+MAX_PLACES_PER_POSE = 40  # places tried (with grasp checks) for one stable pose before the next pose
+RADIAL_STEP_M = 0.03
+ANGLE_STEP_DEG = 3.0
 
 
 @dataclass(frozen=True)
@@ -45,6 +55,45 @@ class KittingSlot:
     pedestal: Pedestal
     grasp: Grasp
     stable_pose_probability: float
+    footprint_world: np.ndarray  # (4, 2) corners of the footprint rectangle, world x-y, metres
+    reach: object = None  # what ``Reach.at_pick`` returned (e.g. the arm configurations), for ``still_clear``
+
+
+class Reach:
+    """The robot's side of kitting (the planner stays free of robot models): override both methods.
+
+    ``at_pick(part, grasp, world_from_part, obstacles)``: something truthy (e.g. the arm configurations that
+    reach the grasp) when the robot reaches the grasp without touching ``obstacles`` (mesh, world pose) pairs,
+    else None. ``still_clear(reach, obstacles)``: whether those configurations still touch nothing when
+    ``obstacles`` are added next to the part.
+    """
+
+    def at_pick(self, part: str, grasp: Grasp, world_from_part: Pose,
+                obstacles: list[tuple[trimesh.Trimesh, Pose]]) -> object | None:
+        return True
+
+    def still_clear(self, reach: object, obstacles: list[tuple[trimesh.Trimesh, Pose]]) -> bool:
+        return True
+
+
+@dataclass(frozen=True)
+class KittingArea:
+    """The ring where parts may lie (world frame, metres).
+
+    centre_xy: the robot base; inner_radius_m / outer_radius_m bound the footprint centres' distance from it;
+    table_min_xy / table_max_xy: the table top's extent; keep_out: rectangles (min_xy, max_xy) no footprint
+    may overlap (the jig and the assembly on it, with room for the hand); gap_m: free space between footprints.
+    """
+
+    centre_xy: tuple[float, float]
+    inner_radius_m: float
+    outer_radius_m: float
+    table_min_xy: tuple[float, float]
+    table_max_xy: tuple[float, float]
+    table_z_m: float
+    pedestal_height_m: float
+    keep_out: tuple[tuple[tuple[float, float], tuple[float, float]], ...] = ()
+    gap_m: float = 0.06
 
 
 class KittingError(RuntimeError):
@@ -64,53 +113,165 @@ def stable_rest_poses(mesh: trimesh.Trimesh, max_poses: int = 6) -> list[tuple[n
     return out
 
 
-def pedestal_for(footprint_min: np.ndarray, footprint_max: np.ndarray, table_z_m: float,
-                 height_m: float) -> Pedestal:
-    """A pedestal under a footprint (x-y bounds, world), inset for the fingers, top at ``table_z_m + height_m``."""
-    extent = footprint_max - footprint_min
+def pedestal_for(half_extent_xy: np.ndarray, world_from_rest: Pose, height_m: float) -> Pedestal:
+    """A pedestal under a footprint of half extents ``half_extent_xy`` centred in the ``rest`` frame (whose x-y
+    plane is the pedestal's top), inset for the fingers."""
+    extent = 2.0 * np.asarray(half_extent_xy, dtype=np.float64)
     inset = np.minimum(FINGER_CLEARANCE_M, 0.5 * (1.0 - MIN_PAD_FRACTION) * extent)
     size = np.maximum(extent - 2 * inset, 1e-3)
-    centre = 0.5 * (footprint_min + footprint_max)
-    return Pedestal((float(size[0]), float(size[1]), height_m),
-                    Pose([centre[0], centre[1], table_z_m + 0.5 * height_m], [1.0, 0.0, 0.0, 0.0]))
+    rest_from_pedestal = Pose([0.0, 0.0, -0.5 * height_m], [1.0, 0.0, 0.0, 0.0])
+    return Pedestal((float(size[0]), float(size[1]), height_m), world_from_rest @ rest_from_pedestal)
+
+
+def _yaw(angle_rad: float) -> Pose:
+    return Pose([0.0, 0.0, 0.0], [np.cos(angle_rad / 2), 0.0, 0.0, np.sin(angle_rad / 2)])
+
+
+def _corners(centre_xy: np.ndarray, yaw_rad: float, half_xy: np.ndarray) -> np.ndarray:
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    local = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * half_xy
+    return local @ np.array([[c, s], [-s, c]]) + centre_xy
+
+
+def _polygons_overlap(a: np.ndarray, b: np.ndarray) -> bool:
+    """Separating-axis test of two convex quadrilaterals (4, 2)."""
+    for poly in (a, b):
+        edges = np.roll(poly, -1, axis=0) - poly
+        for nx, ny in np.column_stack([-edges[:, 1], edges[:, 0]]):
+            pa, pb = a @ [nx, ny], b @ [nx, ny]
+            if pa.max() <= pb.min() or pb.max() <= pa.min():
+                return False
+    return True
+
+
+def _box_corners(lo: Sequence[float], hi: Sequence[float]) -> np.ndarray:
+    return np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]], dtype=np.float64)
+
+
+def candidate_places(area: KittingArea, half_xy: np.ndarray,
+                     prefer_near_xy: np.ndarray) -> list[tuple[np.ndarray, float]]:
+    """Places (centre_xy, ring angle) for a footprint of half extents ``half_xy`` (long side first), nearest
+    to ``prefer_near_xy`` first, inside the ring and the table and outside the keep-out rectangles."""
+    centre = np.asarray(area.centre_xy, dtype=np.float64)
+    lo, hi = np.asarray(area.table_min_xy), np.asarray(area.table_max_xy)
+    places = []
+    for radius in np.arange(area.inner_radius_m + half_xy[1], area.outer_radius_m + 1e-9, RADIAL_STEP_M):
+        for angle in np.deg2rad(np.arange(-180.0, 180.0, ANGLE_STEP_DEG)):
+            xy = centre + radius * np.array([np.cos(angle), np.sin(angle)])
+            corners = _corners(xy, angle + np.pi / 2, half_xy)
+            if np.any(corners < lo) or np.any(corners > hi):
+                continue
+            grown = _corners(xy, angle + np.pi / 2, half_xy + area.gap_m / 2)
+            if any(_polygons_overlap(grown, _box_corners(k_lo, k_hi)) for k_lo, k_hi in area.keep_out):
+                continue
+            places.append((xy, float(angle)))
+    places.sort(key=lambda p: float(np.linalg.norm(p[0] - prefer_near_xy)))
+    return places
 
 
 def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: dict[str, list[Grasp]],
-                 grasp_ok_at_target: Callable[[str, Grasp], bool], area_origin_xy: np.ndarray,
-                 area_size_xy: np.ndarray, table_z_m: float, pedestal_height_m: float) -> list[KittingSlot]:
-    """A slot for every part, laid out in rows from ``area_origin_xy`` (the area's corner, world x-y).
+                 grasp_ok_at_target: Callable[[str, Grasp], bool], area: KittingArea,
+                 prefer_near_xy: Sequence[float] = (0.5, 0.0), reach: Reach | None = None) -> list[KittingSlot]:
+    """A slot for every part, in the order given (put the first-assembled parts first: they get the places
+    nearest ``prefer_near_xy``, usually the jig).
 
-    ``grasp_ok_at_target(part, grasp)`` says whether a grasp (part frame) also works where the part is placed.
+    ``grasp_ok_at_target(part, grasp)`` says whether a grasp (part frame) also works where the part is placed;
+    ``reach`` whether the robot's arm reaches it at the pick among the parts already laid out (and keeps
+    reaching the earlier parts once the new one lies next to them).
     """
+    reach = reach or Reach()
     slots: list[KittingSlot] = []
-    cursor = np.array(area_origin_xy, dtype=np.float64)
-    row_depth = 0.0
-    area_end = np.asarray(area_origin_xy) + np.asarray(area_size_xy)
+    placed_meshes: dict[str, trimesh.Trimesh] = {}
+    prefer = np.asarray(prefer_near_xy, dtype=np.float64)
     for name, mesh in zip(names, meshes):
-        chosen = None
-        for rest_from_part, probability in stable_rest_poses(mesh):
-            rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
-            half = 0.5 * (rested.max(axis=0) - rested.min(axis=0))
-            if cursor[0] + 2 * half[0] > area_end[0]:  # next row
-                cursor = np.array([area_origin_xy[0], cursor[1] + row_depth + LAYOUT_GAP_M])
-                row_depth = 0.0
-            centre_xy = cursor + half[:2]
-            world_from_rest = Pose([centre_xy[0], centre_xy[1], table_z_m + pedestal_height_m], [1, 0, 0, 0])
-            world_from_part = world_from_rest @ Pose.from_matrix(rest_from_part)
-            pedestal = pedestal_for(centre_xy - half[:2], centre_xy + half[:2], table_z_m, pedestal_height_m)
-            at_pick = feasible_grasps(candidates[name], world_from_part,
-                                      [(pedestal.mesh(), pedestal.world_from_pedestal)], None, floor_z=table_z_m)
-            usable = [g for g in at_pick if grasp_ok_at_target(name, g)]
-            if usable:
-                chosen = KittingSlot(name, world_from_part, pedestal, usable[0], probability)
-                cursor = cursor + [2 * half[0] + LAYOUT_GAP_M, 0.0]
-                row_depth = max(row_depth, 2 * half[1])
-                break
+        chosen = _place_one(name, mesh, candidates[name], grasp_ok_at_target, area, prefer, reach, slots,
+                            placed_meshes)
         if chosen is None:
-            raise KittingError(f"part {name!r}: no stable pose in which one grasp works both at the pick and at "
-                               "its target")
-        if chosen.world_from_part.position[1] + row_depth / 2 > area_end[1] + 1e-9:
-            raise KittingError(f"the parts do not fit the kitting area of {area_size_xy[0]:.2f} x "
-                               f"{area_size_xy[1]:.2f} m (stopped at part {name!r})")
+            raise KittingError(_why_not(name, mesh, candidates[name], grasp_ok_at_target, area, prefer))
         slots.append(chosen)
+        placed_meshes[name] = mesh
     return slots
+
+
+def _obstacles_near(slots: list[KittingSlot], corners: np.ndarray,
+                    meshes: dict[str, trimesh.Trimesh]) -> list[tuple[trimesh.Trimesh, Pose]]:
+    near = []
+    for slot in slots:
+        if np.min(np.linalg.norm(slot.footprint_world[:, None] - corners[None], axis=2)) < NEIGHBOUR_REACH_M:
+            near.append((meshes[slot.part], slot.world_from_part))
+            near.append((slot.pedestal.mesh(), slot.pedestal.world_from_pedestal))
+    return near
+
+
+def _place_one(name, mesh, grasps, grasp_ok_at_target, area, prefer, reach, slots,
+               meshes) -> KittingSlot | None:
+    occupied = [s.footprint_world for s in slots]
+    usable_at_target: dict[int, bool] = {}
+    for rest_from_part, probability in stable_rest_poses(mesh):
+        rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
+        half = 0.5 * (rested.max(axis=0) - rested.min(axis=0))[:2]
+        long_is_x = half[0] >= half[1]
+        half_ring = np.array([max(half), min(half)])  # along the ring, across it
+        tried = 0
+        for xy, angle in candidate_places(area, half_ring, prefer):
+            yaw = angle + np.pi / 2 if long_is_x else angle
+            corners = _corners(xy, angle + np.pi / 2, half_ring)
+            grown = _corners(xy, angle + np.pi / 2, half_ring + area.gap_m / 2)
+            if any(_polygons_overlap(grown, other) for other in occupied):
+                continue
+            tried += 1
+            if tried > MAX_PLACES_PER_POSE:
+                break
+            world_from_rest = Pose([xy[0], xy[1], area.table_z_m + area.pedestal_height_m], [1, 0, 0, 0]) @ _yaw(yaw)
+            world_from_part = world_from_rest @ Pose.from_matrix(rest_from_part)
+            pedestal = pedestal_for(half, world_from_rest, area.pedestal_height_m)
+            own = [(pedestal.mesh(), pedestal.world_from_pedestal)]
+            obstacles = own + _obstacles_near(slots, corners, meshes)
+            chosen, reached = None, None
+            for grasp in feasible_grasps(grasps, world_from_part, obstacles, None, floor_z=area.table_z_m):
+                key = id(grasp)
+                if key not in usable_at_target:
+                    usable_at_target[key] = bool(grasp_ok_at_target(name, grasp))
+                if not usable_at_target[key]:
+                    continue
+                others = [o for s in slots for o in ((meshes[s.part], s.world_from_part),
+                                                               (s.pedestal.mesh(), s.pedestal.world_from_pedestal))]
+                reached = reach.at_pick(name, grasp, world_from_part, others)
+                if reached is not None:
+                    chosen = grasp
+                    break
+            if chosen is None:
+                continue
+            if not _neighbours_still_graspable(slots, mesh, world_from_part, pedestal, corners, area):
+                continue
+            new = [(mesh, world_from_part), (pedestal.mesh(), pedestal.world_from_pedestal)]
+            if not all(reach.still_clear(s.reach, new) for s in slots):
+                continue
+            return KittingSlot(name, world_from_part, pedestal, chosen, probability, corners, reached)
+    return None
+
+
+def _neighbours_still_graspable(slots, mesh, world_from_part, pedestal, corners, area) -> bool:
+    for slot in slots:
+        if np.min(np.linalg.norm(slot.footprint_world[:, None] - corners[None], axis=2)) >= NEIGHBOUR_REACH_M:
+            continue
+        obstacles = [(mesh, world_from_part), (pedestal.mesh(), pedestal.world_from_pedestal),
+                     (slot.pedestal.mesh(), slot.pedestal.world_from_pedestal)]
+        if not feasible_grasps([slot.grasp], slot.world_from_part, obstacles, None, floor_z=area.table_z_m):
+            return False
+    return True
+
+
+def _why_not(name, mesh, grasps, grasp_ok_at_target, area, prefer) -> str:
+    if not grasps:
+        return f"part {name!r}: no grasp at all"
+    if not any(grasp_ok_at_target(name, g) for g in grasps):
+        return f"part {name!r}: no grasp works at its target"
+    rest_from_part = stable_rest_poses(mesh)[0][0]
+    rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
+    half = 0.5 * (rested.max(axis=0) - rested.min(axis=0))[:2]
+    if not candidate_places(area, np.array([max(half), min(half)]), prefer):
+        return (f"part {name!r}: its footprint ({2 * max(half):.2f} x {2 * min(half):.2f} m) does not fit the kitting "
+                f"ring ({area.inner_radius_m:.2f}-{area.outer_radius_m:.2f} m around the robot, on the table)")
+    return (f"part {name!r}: no free place in the kitting ring where one grasp works at the pick (reachable, clear "
+            "of its neighbours) and at its target")

@@ -1,4 +1,4 @@
-"""Kitting: stable rest poses and a pick grasp that also serves at the target."""
+"""Kitting: stable rest poses, a ring layout on the table, and a pick grasp that also serves at the target."""
 
 import numpy as np
 import pytest
@@ -6,9 +6,13 @@ import trimesh
 
 from planning.assembly import read_assembly
 from planning.grasp import feasible_grasps
-from planning.kitting import KittingError, plan_kitting, stable_rest_poses
+from planning.kitting import KittingArea, KittingError, _polygons_overlap, plan_kitting, stable_rest_poses
 from planning.sequence import GraspChecker
 from scenes import sample_folder
+
+AREA = KittingArea(centre_xy=(0.0, 0.0), inner_radius_m=0.32, outer_radius_m=0.72, table_min_xy=(-0.55, -0.8),
+                   table_max_xy=(0.95, 0.8), table_z_m=0.0, pedestal_height_m=0.04,
+                   keep_out=(((0.25, -0.25), (0.75, 0.25)),), gap_m=0.06)
 
 
 def test_a_board_rests_flat_most_often():
@@ -21,24 +25,45 @@ def test_a_board_rests_flat_most_often():
     assert probability == max(p for _, p in poses)
 
 
-def test_chair_parts_get_slots_with_grasps_valid_at_pick():
+def test_chair_parts_lie_apart_in_the_ring_with_grasps_valid_at_pick():
     assembly = read_assembly(sample_folder("chair"))
     checker = GraspChecker(assembly)
     slots = plan_kitting(assembly.part_names, [p.mesh for p in assembly.parts], checker.candidates,
-                         lambda name, grasp: True, np.array([0.0, 0.3]), np.array([1.0, 1.0]), 0.0, 0.12)
+                         lambda name, grasp: True, AREA, prefer_near_xy=(0.5, 0.0))
     assert [s.part for s in slots] == assembly.part_names
-    for slot in slots:
+    for k, slot in enumerate(slots):
         mesh = assembly.part(slot.part).mesh
-        lowest = slot.world_from_part.apply(mesh.vertices)[:, 2].min()
-        assert lowest == pytest.approx(0.12, abs=1e-6)  # resting on its pedestal
-        again = feasible_grasps([slot.grasp], slot.world_from_part,
-                                [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal)], None, floor_z=0.0)
+        world = slot.world_from_part.apply(mesh.vertices)
+        assert world[:, 2].min() == pytest.approx(0.04, abs=1e-6)  # resting on its pedestal
+        centre = slot.footprint_world.mean(axis=0)
+        assert 0.32 <= np.linalg.norm(centre) <= 0.72 + 1e-9
+        # the footprint holds the part's own x-y extent and lies on the table, outside the jig's keep-out
+        assert np.all(world[:, :2].min(axis=0) >= slot.footprint_world.min(axis=0) - 1e-6)
+        assert np.all(world[:, :2].max(axis=0) <= slot.footprint_world.max(axis=0) + 1e-6)
+        assert np.all(slot.footprint_world >= [-0.55, -0.8]) and np.all(slot.footprint_world <= [0.95, 0.8])
+        assert not np.any(np.all((world[:, :2] > [0.25, -0.25]) & (world[:, :2] < [0.75, 0.25]), axis=1))
+        for other in slots[:k]:
+            assert not _polygons_overlap(slot.footprint_world, other.footprint_world)
+        neighbours = [(assembly.part(o.part).mesh, o.world_from_part) for o in slots if o is not slot]
+        neighbours += [(o.pedestal.mesh(), o.pedestal.world_from_pedestal) for o in slots]
+        again = feasible_grasps([slot.grasp], slot.world_from_part, neighbours, None, floor_z=0.0)
         assert len(again) == 1
 
 
 def test_no_grasp_at_target_is_named():
     assembly = read_assembly(sample_folder("table"))
     checker = GraspChecker(assembly)
-    with pytest.raises(KittingError, match="part 'top'"):
+    with pytest.raises(KittingError, match="part 'top': no grasp works at its target"):
         plan_kitting(assembly.part_names[::-1], [p.mesh for p in assembly.parts][::-1], checker.candidates,
-                     lambda name, grasp: name != "top", np.array([0.0, 0.3]), np.array([1.0, 1.0]), 0.0, 0.12)
+                     lambda name, grasp: name != "top", AREA)
+
+
+def test_a_ring_too_small_says_so():
+    board = trimesh.creation.box([0.3, 0.1, 0.02])
+    small = KittingArea(centre_xy=(0.0, 0.0), inner_radius_m=0.32, outer_radius_m=0.72, table_min_xy=(-0.3, -0.3),
+                        table_max_xy=(0.3, 0.3), table_z_m=0.0, pedestal_height_m=0.04)  # the ring leaves the table
+    from planning.grasp import antipodal_grasps
+
+    grasps = antipodal_grasps(board, np.random.default_rng(0))
+    with pytest.raises(KittingError, match="does not fit the kitting ring"):
+        plan_kitting(["board"], [board], {"board": grasps}, lambda n, g: True, small)

@@ -1,0 +1,259 @@
+"""The cell's plan for one assembly: jig, kitting layout, pick-and-place tasks and the timed program.
+
+Inputs: a scene (:mod:`cell.scene`), an assembly at its target poses (assembly frame: metres, +z up, floor at
+z = 0) and its assembly sequence (:mod:`planning.sequence`). The assembly frame sits on the jig at the scene's
+``world_from_assembly``; the jig's pads (:mod:`planning.fixture`) stand on the table under the parts that touch
+the floor.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+from cell.bullet import BulletClient
+from cell.robot import IKError, IKSettings, Panda
+from cell.scene import Scene
+from cell.task import APPROACH_M, INSERTION_M, CellWorld, PartTask, TaskPlan, TaskPlanningError, plan_tasks
+from planning.assembly import Assembly
+from planning.collision import ConvexPart
+from planning.disassembly import SequenceResult
+from planning.fixture import PAD_HEIGHT_M, fixture_pads
+from planning.grasp import Grasp, feasible_grasps
+from planning.kitting import KittingArea, KittingError, KittingSlot, Reach, plan_kitting
+from planning.motion import MotionSettings
+from planning.pose import Pose
+from planning.robot_collision import RobotCollisionChecker
+
+PANDA_REACH_M = 0.855  # from the shoulder (joint 2) to the flange, fully stretched
+SHOULDER_HEIGHT_M = 0.333
+HAND_LENGTH_M = 0.21  # flange to the TCP between the fingertips
+NEAR_TARGET_M = 0.25  # placed parts farther than this from a part's target cannot touch the hand placing it
+
+
+class PlanningFailed(RuntimeError):
+    """No plan: the message says which stage and part; ``stage`` is sequence, kitting or motion."""
+
+    def __init__(self, stage: str, message: str, part: str | None = None) -> None:
+        super().__init__(message)
+        self.stage, self.part = stage, part
+
+
+@dataclass
+class StaticObstacle:
+    name: str
+    mesh: trimesh.Trimesh  # own frame, metres
+    world_from_obstacle: Pose
+
+
+@dataclass
+class CellPlan:
+    world_from_assembly: Pose
+    static: list[StaticObstacle]
+    slots: list[KittingSlot]
+    tasks: list[PartTask]
+    task_plan: TaskPlan
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def program(self):
+        return self.task_plan.program
+
+
+def out_of_reach(scene: Scene, assembly: Assembly) -> list[tuple[str, float]]:
+    """Parts with a point the robot cannot reach at the jig: (name, distance from the shoulder in m) for each
+    part whose nearest vertex lies farther from the shoulder than the arm plus the hand."""
+    base = scene.robot.world_from_base
+    shoulder = base.apply(np.array([[0.0, 0.0, SHOULDER_HEIGHT_M]]))[0]
+    world_from_assembly = scene.fixture.world_from_assembly
+    far = []
+    for part in assembly.parts:
+        world = (world_from_assembly @ part.assembly_from_part).apply(part.mesh.vertices)
+        nearest = float(np.linalg.norm(world - shoulder, axis=1).min())
+        if nearest > PANDA_REACH_M + HAND_LENGTH_M - 0.05:
+            far.append((part.name, nearest))
+    return far
+
+
+def _table(scene: Scene) -> StaticObstacle:
+    size = scene.table.size
+    centre = [scene.table.centre_xy[0], scene.table.centre_xy[1], scene.table.top_z - 0.5 * size[2]]
+    return StaticObstacle("table", trimesh.creation.box(size), Pose(centre, [1, 0, 0, 0]))
+
+
+def _pads(scene: Scene, assembly: Assembly) -> list[StaticObstacle]:
+    pads = fixture_pads(assembly.part_names, assembly.meshes_in_assembly_frame())
+    world_from_assembly = scene.fixture.world_from_assembly
+    return [StaticObstacle(f"pad {pad.part}", pad.mesh(), world_from_assembly @ pad.assembly_from_pad)
+            for pad in pads]
+
+
+def _kitting_area(scene: Scene, assembly: Assembly) -> KittingArea:
+    world_from_assembly = scene.fixture.world_from_assembly
+    points = np.concatenate([world_from_assembly.apply(m.vertices) for m in assembly.meshes_in_assembly_frame()])
+    margin = scene.kitting.jig_margin
+    keep_out = ((tuple(points[:, :2].min(axis=0) - margin), tuple(points[:, :2].max(axis=0) + margin)),)
+    table = scene.table
+    half = np.array(table.size[:2]) / 2
+    return KittingArea(
+        centre_xy=tuple(scene.robot.world_from_base.position[:2]),
+        inner_radius_m=scene.kitting.inner_radius, outer_radius_m=scene.kitting.outer_radius,
+        table_min_xy=tuple(np.array(table.centre_xy) - half), table_max_xy=tuple(np.array(table.centre_xy) + half),
+        table_z_m=table.top_z, pedestal_height_m=scene.kitting.pedestal_height, keep_out=keep_out,
+        gap_m=scene.kitting.gap)
+
+
+class _KitReach(Reach):
+    """Arm configurations (IK) for each part's grasp at the pick (grasp, pre-grasp) and at the target (release,
+    pre-place, end of the retreat), clear of the table, of the parts on the jig at that time and of the parts and
+    pedestals laid out in the kitting area so far. Kitting keeps later parts clear of all of them."""
+
+    def __init__(self, panda: Panda, scene: Scene, rng: np.random.Generator, home_q: np.ndarray,
+                 targets: dict[str, Pose], meshes: dict[str, trimesh.Trimesh], order: list[str],
+                 insertion: dict[str, np.ndarray], touches: dict[str, tuple[str, ...]]) -> None:
+        self.panda, self.rng, self.home_q = panda, rng, home_q
+        self.targets, self.meshes, self.order, self.insertion, self.touches = targets, meshes, order, insertion, touches
+        self.checker = RobotCollisionChecker(scene.robot.world_from_base.matrix(), {})
+        table = _table(scene)
+        self.table = {"table": (ConvexPart.from_mesh("table", table.mesh), table.world_from_obstacle.matrix())}
+        self.settings = IKSettings(restarts=4)
+        self.at_target_cache: dict[tuple[str, int], tuple | None] = {}
+
+    def _world(self, kit: list[tuple[trimesh.Trimesh, Pose]], jig_parts: list[str]) -> dict:
+        out = dict(self.table)
+        for k, (mesh, pose) in enumerate(kit):
+            out[f"kit {k}"] = (ConvexPart.from_mesh(f"kit {k}", mesh), pose.matrix())
+        for name in jig_parts:
+            out[name] = (ConvexPart.from_mesh(name, self.meshes[name]), self.targets[name].matrix())
+        return out
+
+    def _chain(self, poses: list[Pose], seed: np.ndarray | None, checks: list[frozenset[str]]):
+        """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its set, or None."""
+        for attempt in range(3):
+            configurations, previous = [], seed if attempt == 0 else None
+            try:
+                for k, pose in enumerate(poses):
+                    settings = self.settings if k == 0 else IKSettings(restarts=1)
+                    previous = self.panda.inverse_tcp(pose, self.rng, seed_q=previous, settings=settings)
+                    configurations.append(previous)
+            except IKError:
+                continue
+            if all(self.checker.is_valid(q, ignore=ignore) for q, ignore in zip(configurations, checks)):
+                return configurations
+        return None
+
+    def at_target(self, part: str, grasp: Grasp) -> tuple | None:
+        key = (part, id(grasp))
+        if key not in self.at_target_cache:
+            tcp = self.targets[part] @ grasp.part_from_tcp
+            pre = Pose(tcp.position - self.insertion[part] * INSERTION_M, tcp.quat_wxyz)
+            retreat = Pose(tcp.position - tcp.rotation[:, 2] * APPROACH_M, tcp.quat_wxyz)
+            self.checker.set_obstacles(self._world([], self.order[:self.order.index(part)]))
+            self.checker.hold(None, opening_m=grasp.opening_m)
+            touching = frozenset(self.touches[part])
+            found = self._chain([tcp, pre, retreat], self.home_q, [touching, frozenset(), frozenset()])
+            self.at_target_cache[key] = None if found is None else tuple(found)
+        return self.at_target_cache[key]
+
+    def at_pick(self, part, grasp, world_from_part, obstacles):
+        target = self.at_target(part, grasp)
+        if target is None:
+            return None
+        tcp = world_from_part @ grasp.part_from_tcp
+        pre = Pose(tcp.position - tcp.rotation[:, 2] * APPROACH_M, tcp.quat_wxyz)
+        self.checker.set_obstacles(self._world(list(obstacles), self.order[:self.order.index(part)]))
+        self.checker.hold(None, opening_m=grasp.opening_m)
+        found = self._chain([tcp, pre], self.home_q, [frozenset(), frozenset()])
+        return None if found is None else (tuple(found), target, grasp.opening_m)
+
+    def still_clear(self, reach, obstacles) -> bool:
+        self.checker.set_obstacles(self._world(list(obstacles), []))
+        self.checker.hold(None, opening_m=reach[2])
+        return all(self.checker.is_valid(q) for q in reach[0] + reach[1])
+
+
+def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int = 0,
+              motion: MotionSettings | None = None, progress=None) -> CellPlan:
+    """Kitting layout, pick-and-place tasks and the timed program for ``assembly`` in ``scene``; raises
+    :class:`PlanningFailed` naming the stage and the part."""
+    if not sequence.success:
+        raise PlanningFailed("sequence", f"no assembly sequence: {sequence.reason}")
+    seconds: dict[str, float] = {}
+    world_from_assembly = scene.fixture.world_from_assembly
+    home_q = np.array(scene.robot.home_q)
+    static = [_table(scene)] + _pads(scene, assembly)
+    pads_under = {o.name.removeprefix("pad "): o.name for o in static if o.name.startswith("pad ")}
+    order = sequence.order
+    steps = {s.part: s for s in sequence.steps}
+    targets = {p.name: world_from_assembly @ p.assembly_from_part for p in assembly.parts}
+
+    with BulletClient() as client:
+        panda = Panda(client, scene.robot.world_from_base, scene.robot.urdf)
+
+        # --- kitting: a grasp that works at the pick and at the target ----------------------------------------
+        started = time.perf_counter()
+        from planning.sequence import GraspChecker
+
+        candidates = GraspChecker(assembly, seed).candidates
+        pad_obstacles = [(o.mesh, o.world_from_obstacle) for o in static if o.name.startswith("pad ")]
+
+        touches = {}
+        for name in order:
+            touching = [n for n in steps[name].fastened_to if n in targets]
+            touches[name] = tuple(touching + ([pads_under[name]] if name in pads_under else []))
+        kit_reach = _KitReach(panda, scene, np.random.default_rng([seed, 3]), home_q, targets,
+                              {p.name: p.mesh for p in assembly.parts}, order,
+                              {n: np.asarray(steps[n].insertion_direction, dtype=np.float64) for n in order}, touches)
+
+        def ok_at_target(name: str, grasp: Grasp) -> bool:
+            before = order[:order.index(name)]
+            near = [(assembly.part(n).mesh, targets[n]) for n in before
+                    if _distance(targets[n], assembly.part(n).mesh, targets[name], assembly.part(name).mesh)
+                    < NEAR_TARGET_M]
+            direction = steps[name].insertion_direction
+            if not feasible_grasps([grasp], targets[name], near + pad_obstacles, direction,
+                                   floor_z=scene.table.top_z):
+                return False
+            return kit_reach.at_target(name, grasp) is not None
+
+        try:
+            slots = plan_kitting(order, [assembly.part(n).mesh for n in order], candidates, ok_at_target,
+                                 _kitting_area(scene, assembly),
+                                 prefer_near_xy=world_from_assembly.position[:2],
+                                 reach=kit_reach)
+        except KittingError as exc:
+            raise PlanningFailed("kitting", str(exc)) from exc
+        seconds["kitting"] = time.perf_counter() - started
+
+        # --- pick and place -------------------------------------------------------------------------------------
+        started = time.perf_counter()
+        static += [StaticObstacle(f"pedestal {s.part}", s.pedestal.mesh(), s.pedestal.world_from_pedestal)
+                   for s in slots]
+        convex_static = {o.name: (ConvexPart.from_mesh(o.name, o.mesh), o.world_from_obstacle) for o in static}
+        convex_parts = {p.name: ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts}
+        tasks = []
+        for slot in slots:
+            step = steps[slot.part]
+            tasks.append(PartTask(slot.part, slot.world_from_part, targets[slot.part], slot.grasp,
+                                  np.asarray(step.insertion_direction, dtype=np.float64), touches[slot.part],
+                                  f"pedestal {slot.part}", slot.reach[0][0], slot.reach[1][0]))
+        world = CellWorld(panda, scene.robot.world_from_base, convex_static, convex_parts,
+                          np.random.default_rng([seed, 2]), motion or MotionSettings())
+        try:
+            task_plan = plan_tasks(world, tasks, home_q, progress=progress)
+        except TaskPlanningError as exc:
+            raise PlanningFailed("motion", str(exc), exc.part) from exc
+        seconds["motion"] = time.perf_counter() - started
+    return CellPlan(world_from_assembly, static, slots, tasks, task_plan, seconds)
+
+
+def _distance(pose_a: Pose, mesh_a: trimesh.Trimesh, pose_b: Pose, mesh_b: trimesh.Trimesh) -> float:
+    a, b = pose_a.apply(mesh_a.vertices), pose_b.apply(mesh_b.vertices)
+    gaps = np.maximum(0.0, np.maximum(b.min(axis=0) - a.max(axis=0), a.min(axis=0) - b.max(axis=0)))
+    return float(np.linalg.norm(gaps))
+
+
+__all__ = ["CellPlan", "PlanningFailed", "StaticObstacle", "out_of_reach", "plan_cell", "PAD_HEIGHT_M"]

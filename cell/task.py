@@ -1,0 +1,287 @@
+"""Pick-and-place planning: from an assembly sequence and a kitting layout to a timed robot program.
+
+For every part, in assembly order, the robot
+
+1. moves (OMPL, hand empty) to the pre-grasp above the part lying in the kitting area,
+2. approaches in a straight line along the grasp's approach axis (:data:`APPROACH_M`),
+3. closes the gripper on the part,
+4. lifts it straight up (:data:`LIFT_M`),
+5. moves (OMPL, holding the part) to the pre-place pose, :data:`INSERTION_M` back along the insertion direction,
+6. inserts it in a straight line along the insertion direction into its target,
+7. opens the gripper, retreats in a straight line back along the approach axis, and opens to the next grasp.
+
+Finally it returns home. Straight segments are solved by inverse kinematics every :data:`CARTESIAN_STEP_M`
+(seeded from the previous point, so the joints move continuously) and checked with the collision model;
+the contact end of each straight segment is solved first (with restarts) so that the free end follows it.
+
+Collision worlds (all in the cell's world frame, metres): the table, the jig pads, every pedestal, the parts
+still lying in the kitting area, and the parts already placed. What the plan deliberately touches is ignored
+for the segment that touches it, and only there: the part being grasped during the approach, the pedestal it
+rests on during the lift, its neighbours and pads during the insertion, the released part during the retreat
+(the grasp and sequence planners already checked those motions).
+
+Failures raise :class:`TaskPlanningError`, naming the part, the stage and the kind (``no_ik``,
+``start_in_collision``, ``goal_in_collision``, ``timeout``, ``straight_line_blocked``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+from cell.program import GripperStep, MotionStep, Program
+from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS, IKError, IKSettings, Panda
+from planning.collision import ConvexPart, shrunk
+from planning.grasp import Grasp
+from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path, straight_line_valid
+from planning.pose import Pose
+from planning.robot_collision import RobotCollisionChecker
+from planning.timing import JointLimits, time_path
+
+APPROACH_M = 0.08  # straight approach to the grasp and retreat after release, along the grasp's approach axis
+LIFT_M = 0.10  # straight lift after grasping, world +z
+INSERTION_M = 0.08  # straight insertion along the insertion direction into the target
+CARTESIAN_STEP_M = 0.02  # inverse kinematics every this much along straight segments
+MAX_JOINT_STEP_RAD = 0.35  # larger jumps between neighbouring straight-line solutions mean a branch switch
+HELD_MARGIN_M = 0.002  # the held part is checked pulled in by this much, so it may slide along faces it touches
+SQUEEZE_M = 0.004  # the closing command asks for this much less than the part's width (force closure)
+IK_ATTEMPTS = 6  # IK solutions tried (each with restarts) for a collision-free contact configuration
+PANDA_LIMITS = JointLimits(VELOCITY_LIMITS, ACCELERATION_LIMITS, JERK_LIMITS)
+
+
+class TaskPlanningError(RuntimeError):
+    """A pick or place could not be planned. ``kind``: no_ik, start_in_collision, goal_in_collision, timeout,
+    straight_line_blocked; ``part`` and ``stage`` name where."""
+
+    def __init__(self, kind: str, part: str, stage: str, message: str) -> None:
+        super().__init__(f"part {part!r}, {stage}: {message}")
+        self.kind, self.part, self.stage = kind, part, stage
+
+
+@dataclass(frozen=True)
+class PartTask:
+    """What the robot does with one part (world frame, metres)."""
+
+    part: str
+    world_from_pick: Pose  # where the part lies in the kitting area
+    world_from_target: Pose  # where it goes on the jig
+    grasp: Grasp  # part frame
+    insertion_direction: np.ndarray  # unit, world: the part's motion during insertion
+    touches_at_target: tuple[str, ...]  # obstacles it may touch when it arrives (neighbours, its pads)
+    pedestal: str  # the obstacle it rests on at the pick
+    pick_q_hint: np.ndarray | None = None  # an arm configuration known to reach the grasp (from kitting)
+    place_q_hint: np.ndarray | None = None  # ... and the release at the target
+
+
+@dataclass
+class PlannedTask:
+    """The result for one part: its motions' joint waypoints and labels (for the report)."""
+
+    part: str
+    grasp_q: np.ndarray
+    place_q: np.ndarray
+    seconds: float = 0.0
+
+
+@dataclass
+class TaskPlan:
+    program: Program
+    parts: list[PlannedTask] = field(default_factory=list)
+
+
+class CellWorld:
+    """Named convex obstacles of the cell (world frame) and the robot's collision and IK models.
+
+    ``static``: name -> (ConvexPart, world_from_obstacle) that never move (table, pads, pedestals);
+    ``parts``: name -> ConvexPart of the loose parts, whose poses change as they are placed.
+    """
+
+    def __init__(self, panda: Panda, world_from_base: Pose, static: dict[str, tuple[ConvexPart, Pose]],
+                 parts: dict[str, ConvexPart], rng: np.random.Generator,
+                 motion: MotionSettings | None = None) -> None:
+        self.panda = panda
+        self.static = static
+        self.parts = parts
+        self.rng = rng
+        self.motion = motion or MotionSettings()
+        self.part_poses: dict[str, Pose] = {}
+        self.checker = RobotCollisionChecker(world_from_base.matrix(), {})
+        self.ik_settings = IKSettings()
+
+    # --- world state ------------------------------------------------------------------------------------------
+    def set_part_poses(self, poses: dict[str, Pose]) -> None:
+        """Where every loose part is now (parts not named are absent, e.g. the one in the hand)."""
+        self.part_poses = dict(poses)
+        obstacles = {name: (part, pose.matrix()) for name, (part, pose) in self.static.items()}
+        obstacles.update({name: (self.parts[name], pose.matrix()) for name, pose in self.part_poses.items()})
+        self.checker.set_obstacles(obstacles)
+
+    def validity(self, ignore: frozenset[str] = frozenset()):
+        checker = self.checker
+        return lambda q: checker.is_valid(np.asarray(q, dtype=np.float64), ignore=ignore)
+
+    def hold(self, part: str | None, grasp: Grasp | None, opening_m: float) -> None:
+        if part is None:
+            self.checker.hold(None, opening_m=opening_m)
+        else:
+            held = shrunk(self.parts[part], HELD_MARGIN_M)
+            self.checker.hold(held, grasp.part_from_tcp.inverse().matrix(), opening_m=opening_m)
+
+    # --- kinematics -------------------------------------------------------------------------------------------
+    def solve_ik(self, world_from_tcp: Pose, seed_q: np.ndarray, valid, part: str, stage: str,
+                 hint_q: np.ndarray | None = None) -> np.ndarray:
+        """A collision-free IK solution: ``hint_q`` if it is one, else the one nearest ``seed_q`` first."""
+        if hint_q is not None and valid(hint_q):
+            reached, angle = self.panda.forward_tcp(hint_q).distance(world_from_tcp)
+            if reached < 1e-3 and angle < 1e-2:
+                return np.asarray(hint_q, dtype=np.float64)
+        last_error = "no solution"
+        collided = None
+        for attempt in range(IK_ATTEMPTS):
+            try:
+                q = self.panda.inverse_tcp(world_from_tcp, self.rng, seed_q=seed_q if attempt == 0 else None,
+                                           settings=self.ik_settings)
+            except IKError as exc:
+                last_error = str(exc)
+                continue
+            if valid(q):
+                return q
+            collided = collided or self._collision_words(q)
+        if collided:
+            raise TaskPlanningError("goal_in_collision", part, stage,
+                                    f"every inverse-kinematics solution for the TCP at {world_from_tcp} collides "
+                                    f"(first: {collided})")
+        raise TaskPlanningError("no_ik", part, stage, last_error)
+
+    def straight_line(self, q_contact: np.ndarray, world_from_tcp_contact: Pose, offset_world: np.ndarray,
+                      valid, part: str, stage: str) -> np.ndarray:
+        """Joint waypoints (K, 7) from the contact configuration out to the TCP moved by ``offset_world`` (m),
+        keeping the orientation: IK every :data:`CARTESIAN_STEP_M`, each seeded from the previous point."""
+        distance = float(np.linalg.norm(offset_world))
+        steps = max(1, int(np.ceil(distance / CARTESIAN_STEP_M)))
+        settings = IKSettings(restarts=1)
+        path = [np.asarray(q_contact, dtype=np.float64)]
+        for k in range(1, steps + 1):
+            target = Pose(world_from_tcp_contact.position + offset_world * (k / steps),
+                          world_from_tcp_contact.quat_wxyz)
+            try:
+                q = self.panda.inverse_tcp(target, self.rng, seed_q=path[-1], settings=settings)
+            except IKError as exc:
+                raise TaskPlanningError("no_ik", part, stage,
+                                        f"straight line leaves the reachable space: {exc}") from exc
+            if np.max(np.abs(q - path[-1])) > MAX_JOINT_STEP_RAD:
+                raise TaskPlanningError("no_ik", part, stage, "straight line needs a jump between IK branches")
+            if not straight_line_valid(valid, path[-1], q):
+                raise TaskPlanningError("straight_line_blocked", part, stage,
+                                        f"the straight {distance * 100:.0f} cm segment collides "
+                                        f"({self._collision_words(q)})")
+            path.append(q)
+        return np.array(path)
+
+    def _collision_words(self, q: np.ndarray) -> str:
+        hit = self.checker.first_collision(q)
+        return "no collision at its end" if hit is None else str(hit)
+
+    def transit(self, start_q: np.ndarray, goal_q: np.ndarray, valid, part: str, stage: str) -> np.ndarray:
+        try:
+            return plan_joint_path(valid, start_q, goal_q, self.panda.lower_limits, self.panda.upper_limits,
+                                   self.motion)
+        except MotionPlanningError as exc:
+            raise TaskPlanningError(exc.kind, part, stage, str(exc)) from exc
+
+
+def _timed(path: np.ndarray, valid, part: str, stage: str):
+    path = _drop_repeats(path)
+    if len(path) < 2:
+        path = np.stack([path[0], path[0] + 1e-9])
+    try:
+        return time_path(path, PANDA_LIMITS, is_valid=valid)
+    except ValueError as exc:
+        raise TaskPlanningError("straight_line_blocked", part, stage, str(exc)) from exc
+
+
+def _drop_repeats(path: np.ndarray) -> np.ndarray:
+    keep = [0] + [k for k in range(1, len(path)) if np.max(np.abs(path[k] - path[k - 1])) > 1e-7]
+    return np.asarray(path)[keep]
+
+
+def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
+               progress=None) -> TaskPlan:
+    """The whole program: every part of ``tasks`` picked and placed in order, then home.
+
+    ``world`` must hold every part at its pick pose on entry (``set_part_poses``); ``progress(fraction)`` is
+    called after each part.
+    """
+    program = Program(initial_width_m=tasks[0].grasp.opening_m if tasks else 0.08)
+    plan = TaskPlan(program)
+    poses = {t.part: t.world_from_pick for t in tasks}
+    world.set_part_poses(poses)
+    q = np.asarray(home_q, dtype=np.float64)
+    opening = program.initial_width_m
+    for index, task in enumerate(tasks):
+        name, grasp = task.part, task.grasp
+        # --- pick ------------------------------------------------------------------------------------------
+        world.hold(None, None, opening)
+        tcp_pick = task.world_from_pick @ grasp.part_from_tcp
+        approach_world = tcp_pick.rotation[:, 2]
+        valid = world.validity(frozenset({name, task.pedestal}))  # the grasp planner checked the hand there
+        grasp_q = world.solve_ik(tcp_pick, q, valid, name, "grasp at the pick", hint_q=task.pick_q_hint)
+        approach_path = world.straight_line(grasp_q, tcp_pick, -approach_world * APPROACH_M, valid, name,
+                                            "approach to the pick")[::-1]
+        to_pick = world.transit(q, approach_path[0], world.validity(), name, "move to the pick")
+        program.steps.append(MotionStep(f"{name}: move to the pick", _timed(to_pick, world.validity(), name,
+                                                                            "move to the pick"), None))
+        program.steps.append(MotionStep(f"{name}: approach", _timed(approach_path, valid, name, "approach"), None))
+        program.steps.append(GripperStep(f"{name}: close", max(0.0, grasp.width_m - SQUEEZE_M), name))
+        # --- carry -----------------------------------------------------------------------------------------
+        del poses[name]
+        world.set_part_poses(poses)
+        world.hold(name, grasp, grasp.width_m)
+        valid = world.validity(frozenset({task.pedestal}))
+        lift = world.straight_line(grasp_q, tcp_pick, np.array([0.0, 0.0, LIFT_M]), valid, name, "lift")
+        program.steps.append(MotionStep(f"{name}: lift", _timed(lift, valid, name, "lift"), name))
+        tcp_place = task.world_from_target @ grasp.part_from_tcp
+        ignore_at_target = frozenset(task.touches_at_target)
+        valid_insert = world.validity(ignore_at_target)
+        place_q = world.solve_ik(tcp_place, lift[-1], valid_insert, name, "release at the target",
+                                 hint_q=task.place_q_hint)
+        insertion = world.straight_line(place_q, tcp_place, -task.insertion_direction * INSERTION_M, valid_insert,
+                                        name, "insertion")[::-1]
+        valid = world.validity()
+        if not valid(insertion[0]):
+            raise TaskPlanningError("goal_in_collision", name, "move to the target",
+                                    f"the pre-place configuration collides ({world._collision_words(insertion[0])})")
+        carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
+        program.steps.append(MotionStep(f"{name}: move to the target", _timed(carry, valid, name, "carry"), name))
+        program.steps.append(MotionStep(f"{name}: insert", _timed(insertion, valid_insert, name, "insert"), name))
+        # --- release ---------------------------------------------------------------------------------------
+        program.steps.append(GripperStep(f"{name}: open", grasp.opening_m, name))
+        poses[name] = task.world_from_target
+        world.set_part_poses(poses)
+        world.hold(None, None, grasp.opening_m)
+        valid = world.validity(frozenset({name}))
+        retreat = world.straight_line(place_q, tcp_place, -tcp_place.rotation[:, 2] * APPROACH_M, valid, name,
+                                      "retreat")
+        program.steps.append(MotionStep(f"{name}: retreat", _timed(retreat, valid, name, "retreat"), None))
+        q = retreat[-1]
+        opening = tasks[index + 1].grasp.opening_m if index + 1 < len(tasks) else 0.08
+        if abs(opening - grasp.opening_m) > 1e-6:
+            world.hold(None, None, max(opening, grasp.opening_m))
+            if not world.validity()(q):
+                raise TaskPlanningError("start_in_collision", name, "open for the next part",
+                                        "the hand cannot open wider after the retreat")
+            program.steps.append(GripperStep("open for the next part" if index + 1 < len(tasks) else "open",
+                                             opening, None))
+        plan.parts.append(PlannedTask(name, grasp_q, place_q))
+        if progress is not None:
+            progress((index + 1) / len(tasks))
+    world.hold(None, None, opening)
+    home = world.transit(q, np.asarray(home_q, dtype=np.float64), world.validity(), "-", "return home")
+    program.steps.append(MotionStep("return home", _timed(home, world.validity(), "-", "return home"), None))
+    return plan
+
+
+def box_part(name: str, size_m: tuple[float, float, float]) -> ConvexPart:
+    return ConvexPart.from_mesh(name, trimesh.creation.box(size_m))
