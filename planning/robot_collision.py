@@ -3,7 +3,14 @@
 Each link is the convex hull of its URDF collision mesh (slightly conservative, as in most motion planners);
 the world is a set of named convex geometries with poses (table, jig pads, kitting parts, placed parts). A
 configuration is valid when no link and no held part touches the world and no two non-adjacent links touch.
-Pure geometry: forward kinematics comes from :mod:`planning.kinematics`, not from a simulator.
+Pure geometry: forward kinematics comes from the URDF chain of :mod:`planning.kinematics`, not from a simulator.
+
+Speed (every planner calls this thousands of times): the chain is compiled once into seven revolute joints and
+constant transforms, so forward kinematics is one batched Rodrigues formula and seven 4x4 products; every moving
+body (link hull, held-part piece) carries an oriented box, whose world-axis-aligned bounds are computed for all
+bodies in one numpy expression; the broad phase tests all bodies against all world boxes at once; FCL transforms
+are set only on bodies that reach the narrow phase. The last configuration's poses are cached, so
+``is_valid(q)`` followed by ``first_collision(q)`` does forward kinematics once.
 """
 
 from __future__ import annotations
@@ -15,7 +22,7 @@ import numpy as np
 
 from planning.collision import ConvexPart
 from planning.gripper import convex_to_fcl, panda_urdf_path
-from planning.kinematics import load_chain
+from planning.kinematics import Chain, load_chain
 
 ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
 FINGER_JOINTS = ("panda_finger_joint1", "panda_finger_joint2")
@@ -39,123 +46,293 @@ def _allowed_pairs() -> set[frozenset]:
 
 
 ALLOWED_SELF_PAIRS = _allowed_pairs()
-
-
-def _transform(matrix: np.ndarray) -> fcl.Transform:
-    return fcl.Transform(matrix[:3, :3], matrix[:3, 3])
+_REQUEST = fcl.CollisionRequest()  # read-only; a fresh CollisionResult per call (results accumulate contacts)
 
 
 @dataclass(frozen=True)
 class Collision:
-    """The first colliding pair found: names of the two bodies."""
+    """The first colliding pair found: names of the two bodies (a link or ``"held <part>"``, then an obstacle
+    name or a second link)."""
 
     a: str
     b: str
 
 
-class RobotCollisionChecker:
-    """Validity of arm configurations in a fixed world.
+@dataclass(frozen=True)
+class _CompiledChain:
+    """The arm as anchors: anchor 0 is the robot base, anchor k (1..7) the child link of arm joint k.
 
-    world_from_base: (4, 4) the robot base in the world frame.
-    obstacles: name -> (ConvexPart, world_from_part 4x4) of everything the robot must not touch.
-    Broad phase: axis-aligned boxes in numpy (FCL's managers hand back fresh Python wrappers in their callbacks,
-    so the bodies could not be named); narrow phase: ``fcl.collide`` on convex pairs.
+    ``anchor[k] = anchor[parent[k-1]] @ parent_from_joint[k-1] @ rotation(axis[k-1], q[k-1])``; every other link
+    hangs at a constant ``anchor_from_link`` from one anchor (fixed joints, fingers at the current opening).
+    With Rodrigues' formula the rotation part of ``parent_from_joint @ rotation`` is
+    ``P + sin(q) P K + (1 - cos(q)) P K^2`` (P the rotation of parent_from_joint, K the axis' cross matrix).
+    """
+
+    parent: tuple[int, ...]  # (7,) anchor index of each arm joint's parent link
+    parent_from_joint: np.ndarray  # (7, 4, 4) from the parent's anchor to the joint frame (before motion)
+    rotation_k: np.ndarray  # (7, 3, 3) P @ K
+    rotation_k2: np.ndarray  # (7, 3, 3) P @ K @ K
+    links: dict[str, tuple[int, np.ndarray]]  # link -> (anchor index, anchor_from_link (4, 4))
+
+
+def _skew(axis: np.ndarray) -> np.ndarray:
+    x, y, z = axis / np.linalg.norm(axis)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def _compile_chain(chain: Chain, opening_m: float) -> _CompiledChain:
+    """Collapse ``chain`` around the seven arm joints, with the fingers at ``opening_m`` (metres, both together)
+    and every other non-arm joint at 0."""
+    links: dict[str, tuple[int, np.ndarray]] = {chain.root: (0, np.eye(4))}
+    parent, parent_from_joint, axes = [], [], []
+    for joint in chain.joints:
+        anchor, anchor_from_parent = links[joint.parent]
+        if joint.name in ARM_JOINTS:
+            if joint.kind not in ("revolute", "continuous"):
+                raise ValueError(f"arm joint {joint.name!r} is {joint.kind}; the checker expects revolute joints")
+            if ARM_JOINTS.index(joint.name) != len(parent):
+                raise ValueError(f"arm joint {joint.name!r} comes out of order in the URDF chain")
+            parent.append(anchor)
+            parent_from_joint.append(anchor_from_parent @ joint.parent_from_joint)
+            axes.append(_skew(joint.axis))
+            links[joint.child] = (len(parent), np.eye(4))
+            continue
+        motion = np.eye(4)
+        if joint.kind == "prismatic" and joint.name in FINGER_JOINTS:
+            motion[:3, 3] = joint.axis * (opening_m / 2.0)
+        links[joint.child] = (anchor, anchor_from_parent @ joint.parent_from_joint @ motion)
+    if len(parent) != len(ARM_JOINTS):
+        raise ValueError(f"the URDF chain has {len(parent)} of the arm joints {ARM_JOINTS}")
+    fixed = np.array(parent_from_joint)
+    cross = np.array(axes)
+    rotation_k = fixed[:, :3, :3] @ cross
+    return _CompiledChain(tuple(parent), fixed, rotation_k, rotation_k @ cross, links)
+
+
+def _anchors(compiled: _CompiledChain, world_from_base: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(8, 4, 4) world poses of the base (0) and the child links of the seven arm joints (1..7); ``q`` radians."""
+    steps = compiled.parent_from_joint.copy()
+    steps[:, :3, :3] += np.sin(q)[:, None, None] * compiled.rotation_k
+    steps[:, :3, :3] += (1.0 - np.cos(q))[:, None, None] * compiled.rotation_k2
+    anchors = np.empty((8, 4, 4))
+    anchors[0] = world_from_base
+    for k, p in enumerate(compiled.parent):
+        np.matmul(anchors[p], steps[k], out=anchors[k + 1])
+    return anchors
+
+
+def _fcl_transform(matrix: np.ndarray) -> fcl.Transform:
+    return fcl.Transform(np.ascontiguousarray(matrix[:3, :3]), np.ascontiguousarray(matrix[:3, 3]))
+
+
+def _oriented_hull(vertices: np.ndarray, faces: np.ndarray) -> tuple[fcl.CollisionObject, np.ndarray, np.ndarray]:
+    """The hull as an FCL object in the frame of its minimum-volume oriented box: (object, link_from_box (4, 4),
+    half extents (3,) metres)."""
+    import trimesh
+
+    hull = trimesh.Trimesh(vertices, faces, process=False)
+    box = hull.bounding_box_oriented
+    link_from_box = np.array(box.primitive.transform, dtype=np.float64)
+    in_box = (vertices - link_from_box[:3, 3]) @ link_from_box[:3, :3]
+    half = 0.5 * (in_box.max(axis=0) - in_box.min(axis=0))
+    centre = 0.5 * (in_box.max(axis=0) + in_box.min(axis=0))  # re-centre exactly on the hull's extremes
+    link_from_box[:3, 3] += link_from_box[:3, :3] @ centre
+    in_box -= centre
+    return fcl.CollisionObject(convex_to_fcl(in_box, faces)), link_from_box, half
+
+
+class RobotCollisionChecker:
+    """Validity of arm configurations in a world that the caller may replace.
+
+    world_from_base: (4, 4) the robot base in the world frame (metres).
+    obstacles: name -> (ConvexPart, world_from_part (4, 4)) of everything the robot must not touch.
+    Broad phase: axis-aligned boxes in numpy, all moving bodies against all world pieces at once (FCL's managers
+    hand back fresh Python wrappers in their callbacks, so the bodies could not be named); narrow phase:
+    ``fcl.collide`` on convex pairs. Not thread-safe (FCL objects and the pose cache are shared).
     """
 
     def __init__(self, world_from_base: np.ndarray, obstacles: dict[str, tuple[ConvexPart, np.ndarray]],
                  urdf_path: str | None = None) -> None:
         self.chain = load_chain(urdf_path or panda_urdf_path())
         self.world_from_base = np.asarray(world_from_base, dtype=np.float64)
-        # robot: (link name, fcl object, link_from_mesh, hull vertices in the mesh frame)
-        self.links = []
+        self.opening_m = 0.08
+        self._compiled = _compile_chain(self.chain, self.opening_m)
+        # robot bodies: one per collision mesh, each an FCL hull in its oriented-box frame
+        self._link_names: list[str] = []
+        self._link_objects: list[fcl.CollisionObject] = []
+        self._mesh_from_box: list[np.ndarray] = []
+        link_half = []
         for link, meshes in self.chain.collision.items():
             for mesh, link_from_mesh in meshes:
                 hull = mesh.convex_hull
-                geometry = convex_to_fcl(hull.vertices, hull.faces)
-                self.links.append((link, fcl.CollisionObject(geometry), link_from_mesh, np.asarray(hull.vertices)))
-        self.world_names: list[str] = []
-        self.world_objects: list[fcl.CollisionObject] = []
-        boxes = []
+                obj, mesh_from_box, half = _oriented_hull(np.asarray(hull.vertices), np.asarray(hull.faces))
+                self._link_names.append(link)
+                self._link_objects.append(obj)
+                self._mesh_from_box.append(link_from_mesh @ mesh_from_box)
+                link_half.append(half)
+        self._link_half = np.array(link_half)
+        self._links_vs_world = np.array([name != BASE_LINK for name in self._link_names])  # base: on its table
+        n = len(self._link_names)
+        self._self_pairs = np.array([(i, j) for i in range(n) for j in range(i + 1, n)
+                                     if frozenset((self._link_names[i], self._link_names[j])) not in ALLOWED_SELF_PAIRS
+                                     and self._link_names[i] != self._link_names[j]], dtype=np.int64).reshape(-1, 2)
+        self.held_name = ""
+        self._held_part: ConvexPart | None = None
+        self._tcp_from_part = np.eye(4)
+        self._ignore_masks: dict[frozenset, np.ndarray] = {}
+        self._rebuild_bodies()
+        self.set_obstacles(obstacles)
+
+    # --- world and held part ---------------------------------------------------------------------------------
+    def set_obstacles(self, obstacles: dict[str, tuple[ConvexPart, np.ndarray]]) -> None:
+        """Replace the world: name -> (ConvexPart, world_from_part (4, 4), metres). The robot model is kept."""
+        names, objects, boxes = [], [], []
         for name, (part, world_from_part) in obstacles.items():
             matrix = np.asarray(world_from_part, dtype=np.float64)
+            if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+                raise ValueError(f"obstacle {name!r}: world_from_part must be a finite (4, 4) matrix, got shape "
+                                 f"{matrix.shape}")
+            transform = _fcl_transform(matrix)
             for geometry, vertices in zip(part.geometries, part.piece_vertices):
-                self.world_objects.append(fcl.CollisionObject(geometry, _transform(matrix)))
-                self.world_names.append(name)
+                objects.append(fcl.CollisionObject(geometry, transform))
+                names.append(name)
                 world = vertices @ matrix[:3, :3].T + matrix[:3, 3]
                 boxes.append([world.min(axis=0), world.max(axis=0)])
-        self.world_boxes = np.array(boxes).reshape(-1, 2, 3)
-        self.held: list[tuple[fcl.CollisionObject, np.ndarray, np.ndarray]] = []
-        self.held_name = ""
-        self.opening_m = 0.08
-        n = len(self.links)
-        self._self_pairs = np.array([(i, j) for i in range(n) for j in range(i + 1, n)
-                                     if frozenset((self.links[i][0], self.links[j][0])) not in ALLOWED_SELF_PAIRS
-                                     and self.links[i][0] != self.links[j][0]], dtype=np.int64).reshape(-1, 2)
+        self.world_names: list[str] = names
+        self.world_objects: list[fcl.CollisionObject] = objects
+        self.world_boxes = np.array(boxes, dtype=np.float64).reshape(-1, 2, 3)
+        self._world_low, self._world_high = self.world_boxes[None, :, 0, :], self.world_boxes[None, :, 1, :]
+        self._ignore_masks = {frozenset(): np.ones(len(names), dtype=bool)}
+
+    @property
+    def obstacle_names(self) -> frozenset[str]:
+        return frozenset(self.world_names)
 
     def hold(self, part: ConvexPart | None, tcp_from_part: np.ndarray | None = None, opening_m: float = 0.08) -> None:
-        """Attach ``part`` to the TCP at ``tcp_from_part`` (or release with None) and set the finger opening."""
-        self.opening_m = opening_m
-        self.held = []
-        self.held_name = ""
-        if part is None:
-            return
-        self.held_name = f"held {part.name}"
-        for geometry, vertices in zip(part.geometries, part.piece_vertices):
-            self.held.append((fcl.CollisionObject(geometry), np.asarray(tcp_from_part, dtype=np.float64), vertices))
+        """Attach ``part`` to the TCP at ``tcp_from_part`` (4, 4) (or release with None) and set the finger
+        opening (metres between the fingers, 0-0.08)."""
+        if part is not None and tcp_from_part is None:
+            raise ValueError(f"holding {part.name!r} needs tcp_from_part, the part's pose in the TCP frame")
+        if opening_m != self.opening_m:
+            self.opening_m = float(opening_m)
+            self._compiled = _compile_chain(self.chain, self.opening_m)
+        self._held_part = part
+        self.held_name = "" if part is None else f"held {part.name}"
+        self._tcp_from_part = np.eye(4) if part is None else np.asarray(tcp_from_part, dtype=np.float64)
+        self._rebuild_bodies()
 
-    def _link_poses(self, q: np.ndarray) -> dict[str, np.ndarray]:
-        positions = dict(zip(ARM_JOINTS, q))
-        for finger in FINGER_JOINTS:
-            positions[finger] = self.opening_m / 2.0
-        base_from_link = self.chain.link_poses(positions)
-        return {link: self.world_from_base @ m for link, m in base_from_link.items()}
+    def _rebuild_bodies(self) -> None:
+        """Stack the moving bodies (link hulls, then held pieces): anchor index, anchor_from_body, the body's box
+        (centre, half extents) in its own frame, FCL object and name."""
+        links = self._compiled.links
+        anchor, anchor_from_body = [], []
+        for name, mesh_from_box in zip(self._link_names, self._mesh_from_box):
+            index, anchor_from_link = links[name]
+            anchor.append(index)
+            anchor_from_body.append(anchor_from_link @ mesh_from_box)
+        centre = [np.zeros(3)] * len(self._link_names)
+        half = list(self._link_half)
+        objects, names = list(self._link_objects), list(self._link_names)
+        if self._held_part is not None:
+            index, anchor_from_tcp = links[TCP_LINK]
+            anchor_from_part = anchor_from_tcp @ self._tcp_from_part
+            for geometry, vertices in zip(self._held_part.geometries, self._held_part.piece_vertices):
+                low, high = vertices.min(axis=0), vertices.max(axis=0)
+                anchor.append(index)
+                anchor_from_body.append(anchor_from_part)
+                centre.append(0.5 * (low + high))
+                half.append(0.5 * (high - low))
+                objects.append(fcl.CollisionObject(geometry))
+                names.append(self.held_name)
+        self._body_anchor = np.array(anchor, dtype=np.int64)
+        self._anchor_from_body = np.array(anchor_from_body)
+        self._body_centre = np.array(centre)
+        self._body_half = np.array(half)
+        self._body_objects = objects
+        self._body_names = names
+        self._vs_world = np.concatenate([self._links_vs_world, np.ones(len(names) - len(self._link_names), bool)])
+        self._tcp_anchor, self._anchor_from_tcp = links[TCP_LINK]
+        self._cached_q: bytes | None = None
+
+    # --- poses ------------------------------------------------------------------------------------------------
+    def _poses(self, q: np.ndarray) -> None:
+        """Set the cache for configuration ``q``: anchors, body poses and world-axis-aligned body boxes."""
+        key = q.tobytes()
+        if key == self._cached_q:
+            return
+        anchors = _anchors(self._compiled, self.world_from_base, q)
+        world_from_body = anchors[self._body_anchor] @ self._anchor_from_body
+        rotation = world_from_body[:, :3, :3]
+        centre = np.einsum("bij,bj->bi", rotation, self._body_centre) + world_from_body[:, :3, 3]
+        half = np.einsum("bij,bj->bi", np.abs(rotation), self._body_half)
+        self._anchors_now = anchors
+        self._world_from_body = world_from_body
+        self._low, self._high = centre - half, centre + half
+        self._placed = np.zeros(len(self._body_objects), dtype=bool)
+        self._cached_q = key
 
     def world_from_tcp(self, q: np.ndarray) -> np.ndarray:
-        return self._link_poses(q)[TCP_LINK]
+        """(4, 4) the TCP (``panda_grasptarget``) in the world frame at arm configuration ``q`` (radians)."""
+        self._poses(np.ascontiguousarray(q, dtype=np.float64))
+        return self._anchors_now[self._tcp_anchor] @ self._anchor_from_tcp
 
-    def _against_world(self, obj: fcl.CollisionObject, box: np.ndarray, name: str) -> Collision | None:
-        if len(self.world_boxes) == 0:
-            return None
-        lo, hi = box
-        near = np.flatnonzero(np.all(self.world_boxes[:, 0] <= hi, axis=1)
-                              & np.all(self.world_boxes[:, 1] >= lo, axis=1))
-        for k in near:
-            if fcl.collide(obj, self.world_objects[k], fcl.CollisionRequest(), fcl.CollisionResult()):
-                return Collision(name, self.world_names[k])
-        return None
+    # --- queries ------------------------------------------------------------------------------------------------
+    def _world_mask(self, ignore: frozenset[str]) -> np.ndarray:
+        mask = self._ignore_masks.get(ignore)
+        if mask is None:
+            mask = np.array([name not in ignore for name in self.world_names], dtype=bool)
+            self._ignore_masks[ignore] = mask
+        return mask
 
-    def first_collision(self, q: np.ndarray) -> Collision | None:
-        """The first collision at arm configuration ``q`` (radians), or None when it is valid."""
-        world_from_link = self._link_poses(q)
-        boxes = []
-        for link, obj, link_from_mesh, vertices in self.links:
-            matrix = world_from_link[link] @ link_from_mesh
-            obj.setTransform(_transform(matrix))
-            world = vertices @ matrix[:3, :3].T + matrix[:3, 3]
-            box = np.array([world.min(axis=0), world.max(axis=0)])
-            boxes.append(box)
-            if link == BASE_LINK:
-                continue  # mounted on the table: static, and touching its support by design
-            hit = self._against_world(obj, box, link)
-            if hit:
-                return hit
-        boxes = np.array(boxes)
+    def _collide(self, body: int, other: fcl.CollisionObject) -> bool:
+        if not self._placed[body]:
+            self._body_objects[body].setTransform(_fcl_transform(self._world_from_body[body]))
+            self._placed[body] = True
+        return bool(fcl.collide(self._body_objects[body], other, _REQUEST, fcl.CollisionResult()))
+
+    def _first_hit(self, q: np.ndarray, ignore: frozenset[str]) -> tuple[int, int, bool] | None:
+        """(body, other, other_is_link) of the first collision, or None. Order: links against the world, link
+        pairs, held pieces against the world."""
+        q = np.ascontiguousarray(q, dtype=np.float64)
+        if q.shape != (7,):
+            raise ValueError(f"q must hold the 7 arm joint values (radians), got shape {q.shape}")
+        self._poses(q)
+        low, high = self._low, self._high
+        n_links = len(self._link_names)
+        candidates = np.empty((0, 2), dtype=np.int64)
+        if len(self.world_objects):
+            near = (low[:, None, :] <= self._world_high).all(axis=2)
+            near &= (self._world_low <= high[:, None, :]).all(axis=2)
+            near &= self._vs_world[:, None]
+            near &= self._world_mask(ignore)[None, :]
+            candidates = np.argwhere(near)  # row-major: bodies in order, links before held pieces
+        split = int(np.searchsorted(candidates[:, 0], n_links))
+        for body, k in candidates[:split]:
+            if self._collide(body, self.world_objects[k]):
+                return int(body), int(k), False
         first, second = self._self_pairs[:, 0], self._self_pairs[:, 1]
-        overlapping = np.all(boxes[first, 0] <= boxes[second, 1], axis=1) & np.all(
-            boxes[second, 0] <= boxes[first, 1], axis=1)
+        overlapping = (low[first] <= high[second]).all(axis=1) & (low[second] <= high[first]).all(axis=1)
         for i, j in self._self_pairs[overlapping]:
-            if fcl.collide(self.links[i][1], self.links[j][1], fcl.CollisionRequest(), fcl.CollisionResult()):
-                return Collision(self.links[i][0], self.links[j][0])
-        if self.held:
-            world_from_tcp = world_from_link[TCP_LINK]
-            for obj, tcp_from_part, vertices in self.held:
-                matrix = world_from_tcp @ tcp_from_part
-                obj.setTransform(_transform(matrix))
-                world = vertices @ matrix[:3, :3].T + matrix[:3, 3]
-                hit = self._against_world(obj, np.array([world.min(axis=0), world.max(axis=0)]), self.held_name)
-                if hit:
-                    return hit
+            if not self._placed[j]:
+                self._body_objects[j].setTransform(_fcl_transform(self._world_from_body[j]))
+                self._placed[j] = True
+            if self._collide(i, self._body_objects[j]):
+                return int(i), int(j), True
+        for body, k in candidates[split:]:
+            if self._collide(body, self.world_objects[k]):
+                return int(body), int(k), False
         return None
 
-    def is_valid(self, q: np.ndarray) -> bool:
-        return self.first_collision(q) is None
+    def first_collision(self, q: np.ndarray, ignore: frozenset[str] = frozenset()) -> Collision | None:
+        """The first collision at arm configuration ``q`` (7,) radians, or None when it is valid. Obstacles
+        named in ``ignore`` are skipped for this query (names not in the world are allowed and change nothing)."""
+        hit = self._first_hit(q, frozenset(ignore))
+        if hit is None:
+            return None
+        body, other, other_is_link = hit
+        return Collision(self._body_names[body],
+                         self._body_names[other] if other_is_link else self.world_names[other])
+
+    def is_valid(self, q: np.ndarray, ignore: frozenset[str] = frozenset()) -> bool:
+        """Whether ``q`` (7,) radians is free of collisions, skipping the obstacles named in ``ignore``."""
+        return self._first_hit(q, ignore if isinstance(ignore, frozenset) else frozenset(ignore)) is None

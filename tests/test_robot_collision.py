@@ -1,5 +1,6 @@
 """Forward kinematics in numpy against PyBullet's, and the robot's collision checker."""
 
+import fcl
 import numpy as np
 import trimesh
 
@@ -7,8 +8,15 @@ from cell.bullet import BulletClient
 from cell.robot import Panda
 from cell.scene import load_scene
 from planning.collision import ConvexPart
+from planning.gripper import convex_to_fcl
 from planning.pose import Pose
-from planning.robot_collision import RobotCollisionChecker
+from planning.robot_collision import (
+    ALLOWED_SELF_PAIRS,
+    ARM_JOINTS,
+    BASE_LINK,
+    FINGER_JOINTS,
+    RobotCollisionChecker,
+)
 
 
 def table_world():
@@ -62,3 +70,112 @@ def test_held_part_collides_with_world():
     assert hit is not None and hit.a == "held plank" and hit.b == "table"
     checker.hold(None)
     assert checker.first_collision(q) is None
+
+
+def cluttered_world():
+    """The table, a wall in front of the robot and a post beside it: real boxes, world frame, metres."""
+    world = table_world()
+    for name, size, position in (("wall", [0.3, 0.04, 0.5], [0.5, 0.0, 0.25]),
+                                 ("post", [0.06, 0.06, 0.6], [0.1, 0.45, 0.3])):
+        world_from_box = np.eye(4)
+        world_from_box[:3, 3] = position
+        world[name] = (ConvexPart.from_mesh(name, trimesh.creation.box(size)), world_from_box)
+    return world
+
+
+def brute_force_valid(checker, world, q):
+    """Every link hull against every world piece and every checked link pair with FCL, no broad phase, link poses
+    from the URDF chain: an independent reference for the checker's answer."""
+    positions = dict(zip(ARM_JOINTS, q)) | {finger: checker.opening_m / 2 for finger in FINGER_JOINTS}
+    base_from_link = checker.chain.link_poses(positions)
+    links = []
+    for link, meshes in checker.chain.collision.items():
+        for mesh, link_from_mesh in meshes:
+            hull = mesh.convex_hull
+            matrix = base_from_link[link] @ link_from_mesh
+            links.append((link, fcl.CollisionObject(convex_to_fcl(hull.vertices, hull.faces),
+                                                    fcl.Transform(matrix[:3, :3], matrix[:3, 3]))))
+    pieces = [fcl.CollisionObject(g, fcl.Transform(m[:3, :3], m[:3, 3]))
+              for part, m in world.values() for g in part.geometries]
+
+    def touch(a, b):
+        return fcl.collide(a, b, fcl.CollisionRequest(), fcl.CollisionResult()) > 0
+
+    if any(touch(obj, piece) for link, obj in links if link != BASE_LINK for piece in pieces):
+        return False
+    return not any(touch(a, b) for i, (name_a, a) in enumerate(links) for name_b, b in links[i + 1:]
+                   if name_a != name_b and frozenset((name_a, name_b)) not in ALLOWED_SELF_PAIRS)
+
+
+def test_agrees_with_brute_force_fcl():
+    world = cluttered_world()
+    checker = RobotCollisionChecker(np.eye(4), world)
+    rng = np.random.default_rng(3)
+    home = np.array(load_scene().robot.home_q)
+    lower = np.array([-2.9, -1.8, -2.9, -3.0, -2.9, 0.0, -2.9])
+    upper = np.array([2.9, 1.8, 2.9, -0.1, 2.9, 3.7, 2.9])
+    configurations = np.concatenate([rng.uniform(lower, upper, (150, 7)),
+                                     np.clip(home + rng.normal(scale=0.5, size=(150, 7)), lower, upper)])
+    ours = [checker.is_valid(q) for q in configurations]
+    reference = [brute_force_valid(checker, world, q) for q in configurations]
+    assert ours == reference
+    assert 0.2 < np.mean(ours) < 0.9  # both answers occur: the comparison means something
+
+
+def test_set_obstacles_replaces_the_world():
+    checker = RobotCollisionChecker(np.eye(4), table_world())
+    into_table = np.array([-1.2, 1.5, 0.0, -0.5, 0.0, 1.0, 0.0])  # down through the table, right of the wall
+    assert checker.first_collision(into_table).b == "table"
+    world = cluttered_world()
+    del world["table"]
+    checker.set_obstacles(world)
+    assert checker.is_valid(into_table)  # the same configuration, answered again after the world changed
+    assert checker.obstacle_names == {"wall", "post"}
+    # reaching forward at the wall's height: home with the shoulder lowered towards the wall
+    reach = np.array([0.0, 0.6, 0.0, -1.2, 0.0, 1.8, 0.785])
+    hit = checker.first_collision(reach)
+    assert hit is not None and hit.b == "wall"
+    checker.set_obstacles({})
+    assert checker.is_valid(reach) and checker.is_valid(into_table)
+
+
+def test_ignore_skips_named_obstacles_for_one_query():
+    world = table_world()
+    world["table copy"] = world["table"]
+    checker = RobotCollisionChecker(np.eye(4), world)
+    into_table = np.array([0.0, 1.5, 0.0, -0.5, 0.0, 1.0, 0.0])
+    assert checker.first_collision(into_table).b == "table"
+    assert checker.first_collision(into_table, ignore=frozenset({"table"})).b == "table copy"
+    assert checker.is_valid(into_table, ignore=frozenset({"table", "table copy"}))
+    assert checker.is_valid(into_table, ignore=frozenset({"table", "table copy", "not in the world"}))
+    assert not checker.is_valid(into_table)  # the ignore list does not stick
+    assert not checker.is_valid(into_table, ignore=frozenset({"not in the world"}))
+
+
+def test_ignore_applies_to_the_held_part_but_not_to_self_collision():
+    checker = RobotCollisionChecker(np.eye(4), table_world())
+    q = np.array(load_scene().robot.home_q)
+    assert checker.is_valid(q)
+    tcp_height = checker.world_from_tcp(q)[2, 3]
+    checker.hold(ConvexPart.from_mesh("plank", trimesh.creation.box([0.05, 0.05, 2 * tcp_height + 0.1])), np.eye(4),
+                 opening_m=0.05)
+    assert not checker.is_valid(q)  # same q as before holding: the cached poses must not hide the plank
+    assert checker.is_valid(q, ignore=frozenset({"table"}))
+    checker.hold(None)
+    folded = np.array([0.65, -0.89, -2.26, -3.04, -2.69, 0.82, 0.34])
+    assert not checker.is_valid(folded, ignore=frozenset({"table"}))
+
+
+def test_finger_opening_moves_the_fingers():
+    checker = RobotCollisionChecker(np.eye(4), {})
+    q = np.array(load_scene().robot.home_q)
+    world_from_tcp = checker.world_from_tcp(q)
+    sliver = ConvexPart.from_mesh("sliver", trimesh.creation.box([0.01, 0.01, 0.02]))  # between the pads
+    checker.set_obstacles({"sliver": (sliver, world_from_tcp)})
+    checker.hold(None, opening_m=0.08)
+    assert checker.is_valid(q)
+    checker.hold(None, opening_m=0.0)  # the fingers close on the sliver
+    hit = checker.first_collision(q)
+    assert hit is not None and hit.a in ("panda_leftfinger", "panda_rightfinger") and hit.b == "sliver"
+    # the TCP does not depend on the opening, and FK stays exact after the change
+    np.testing.assert_allclose(checker.world_from_tcp(q), world_from_tcp, atol=1e-12)
