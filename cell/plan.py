@@ -56,6 +56,7 @@ class CellPlan:
     slots: list[KittingSlot]
     tasks: list[PartTask]
     task_plan: TaskPlan
+    joint_limits: tuple[np.ndarray, np.ndarray]  # lower, upper (rad), from the robot's URDF
     seconds: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -176,9 +177,12 @@ class _KitReach(Reach):
 
 
 def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int = 0,
-              motion: MotionSettings | None = None, progress=None) -> CellPlan:
+              motion: MotionSettings | None = None, progress=None, on_stage=None) -> CellPlan:
     """Kitting layout, pick-and-place tasks and the timed program for ``assembly`` in ``scene``; raises
-    :class:`PlanningFailed` naming the stage and the part."""
+    :class:`PlanningFailed` naming the stage and the part. ``on_stage(name)`` is called as the kitting and the
+    motion stages begin; ``progress(fraction)`` after each part's motions are planned. ``CellPlan.seconds``
+    holds the time of kitting, motion (OMPL, IK, checks) and timing (Ruckig, with its collision re-check)."""
+    on_stage = on_stage or (lambda name: None)
     if not sequence.success:
         raise PlanningFailed("sequence", f"no assembly sequence: {sequence.reason}")
     seconds: dict[str, float] = {}
@@ -194,6 +198,7 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
         panda = Panda(client, scene.robot.world_from_base, scene.robot.urdf)
 
         # --- kitting: a grasp that works at the pick and at the target ----------------------------------------
+        on_stage("kitting")
         started = time.perf_counter()
         from planning.sequence import GraspChecker
 
@@ -208,19 +213,20 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
                               {p.name: p.mesh for p in assembly.parts}, order,
                               {n: np.asarray(steps[n].insertion_direction, dtype=np.float64) for n in order}, touches)
 
-        def ok_at_target(name: str, grasp: Grasp) -> bool:
+        ranked: dict[str, list[Grasp]] = {}
+        for name in order:  # grasps clear of the hand's surroundings at the target, ranked for the target
             before = order[:order.index(name)]
             near = [(assembly.part(n).mesh, targets[n]) for n in before
                     if _distance(targets[n], assembly.part(n).mesh, targets[name], assembly.part(name).mesh)
                     < NEAR_TARGET_M]
-            direction = steps[name].insertion_direction
-            if not feasible_grasps([grasp], targets[name], near + pad_obstacles, direction,
-                                   floor_z=scene.table.top_z):
-                return False
+            ranked[name] = feasible_grasps(candidates[name], targets[name], near + pad_obstacles,
+                                               steps[name].insertion_direction, floor_z=scene.table.top_z)
+
+        def ok_at_target(name: str, grasp: Grasp) -> bool:
             return kit_reach.at_target(name, grasp) is not None
 
         try:
-            slots = plan_kitting(order, [assembly.part(n).mesh for n in order], candidates, ok_at_target,
+            slots = plan_kitting(order, [assembly.part(n).mesh for n in order], ranked, ok_at_target,
                                  _kitting_area(scene, assembly),
                                  prefer_near_xy=world_from_assembly.position[:2],
                                  reach=kit_reach)
@@ -229,6 +235,7 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
         seconds["kitting"] = time.perf_counter() - started
 
         # --- pick and place -------------------------------------------------------------------------------------
+        on_stage("motion")
         started = time.perf_counter()
         static += [StaticObstacle(f"pedestal {s.part}", s.pedestal.mesh(), s.pedestal.world_from_pedestal)
                    for s in slots]
@@ -246,8 +253,10 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
             task_plan = plan_tasks(world, tasks, home_q, progress=progress)
         except TaskPlanningError as exc:
             raise PlanningFailed("motion", str(exc), exc.part) from exc
-        seconds["motion"] = time.perf_counter() - started
-    return CellPlan(world_from_assembly, static, slots, tasks, task_plan, seconds)
+        seconds["timing"] = world.timing_seconds
+        seconds["motion"] = time.perf_counter() - started - world.timing_seconds
+        limits = (panda.lower_limits.copy(), panda.upper_limits.copy())
+    return CellPlan(world_from_assembly, static, slots, tasks, task_plan, limits, seconds)
 
 
 def _distance(pose_a: Pose, mesh_a: trimesh.Trimesh, pose_b: Pose, mesh_b: trimesh.Trimesh) -> float:

@@ -26,7 +26,8 @@ Failures raise :class:`TaskPlanningError`, naming the part, the stage and the ki
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import time
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import trimesh
@@ -47,6 +48,7 @@ CARTESIAN_STEP_M = 0.02  # inverse kinematics every this much along straight seg
 MAX_JOINT_STEP_RAD = 0.35  # larger jumps between neighbouring straight-line solutions mean a branch switch
 HELD_MARGIN_M = 0.002  # the held part is checked pulled in by this much, so it may slide along faces it touches
 SQUEEZE_M = 0.004  # the closing command asks for this much less than the part's width (force closure)
+DENSE_CHECK_RAD = 0.004  # joint step of the re-check of planned paths
 IK_ATTEMPTS = 6  # IK solutions tried (each with restarts) for a collision-free contact configuration
 PANDA_LIMITS = JointLimits(VELOCITY_LIMITS, ACCELERATION_LIMITS, JERK_LIMITS)
 
@@ -109,6 +111,7 @@ class CellWorld:
         self.part_poses: dict[str, Pose] = {}
         self.checker = RobotCollisionChecker(world_from_base.matrix(), {})
         self.ik_settings = IKSettings()
+        self.timing_seconds = 0.0  # spent in Ruckig timing and its collision re-checks
 
     # --- world state ------------------------------------------------------------------------------------------
     def set_part_poses(self, poses: dict[str, Pose]) -> None:
@@ -185,14 +188,24 @@ class CellWorld:
         return "no collision at its end" if hit is None else str(hit)
 
     def transit(self, start_q: np.ndarray, goal_q: np.ndarray, valid, part: str, stage: str) -> np.ndarray:
-        try:
-            return plan_joint_path(valid, start_q, goal_q, self.panda.lower_limits, self.panda.upper_limits,
-                                   self.motion)
-        except MotionPlanningError as exc:
-            raise TaskPlanningError(exc.kind, part, stage, str(exc)) from exc
+        """An OMPL path, re-checked every :data:`DENSE_CHECK_RAD` (OMPL checks its edges at its resolution and
+        can step over a thin overlap); a path that fails is planned again with a finer resolution."""
+        settings = self.motion
+        for _ in range(3):
+            try:
+                path = plan_joint_path(valid, start_q, goal_q, self.panda.lower_limits, self.panda.upper_limits,
+                                       settings)
+            except MotionPlanningError as exc:
+                raise TaskPlanningError(exc.kind, part, stage, str(exc)) from exc
+            if all(straight_line_valid(valid, a, b, step_rad=DENSE_CHECK_RAD) for a, b in zip(path[:-1], path[1:])):
+                return path
+            settings = replace(settings, check_resolution=settings.check_resolution / 4)
+        raise TaskPlanningError("timeout", part, stage, "every planned path grazes an obstacle between OMPL's checks")
 
 
-def _timed(path: np.ndarray, valid, part: str, stage: str):
+def _timed(world: CellWorld, path: np.ndarray, valid, part: str, stage: str):
+    """Time a joint path with Ruckig (adds the seconds spent to ``world.timing_seconds``)."""
+    started = time.perf_counter()
     path = _drop_repeats(path)
     if len(path) < 2:
         path = np.stack([path[0], path[0] + 1e-9])
@@ -200,6 +213,8 @@ def _timed(path: np.ndarray, valid, part: str, stage: str):
         return time_path(path, PANDA_LIMITS, is_valid=valid)
     except ValueError as exc:
         raise TaskPlanningError("straight_line_blocked", part, stage, str(exc)) from exc
+    finally:
+        world.timing_seconds += time.perf_counter() - started
 
 
 def _drop_repeats(path: np.ndarray) -> np.ndarray:
@@ -219,6 +234,10 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
     poses = {t.part: t.world_from_pick for t in tasks}
     world.set_part_poses(poses)
     q = np.asarray(home_q, dtype=np.float64)
+
+    def add_motion(part: str, label: str, path: np.ndarray, valid, held: str | None) -> None:
+        program.steps.append(MotionStep(f"{part}: {label}", _timed(world, path, valid, part, label), held))
+
     opening = program.initial_width_m
     for index, task in enumerate(tasks):
         name, grasp = task.part, task.grasp
@@ -231,9 +250,8 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         approach_path = world.straight_line(grasp_q, tcp_pick, -approach_world * APPROACH_M, valid, name,
                                             "approach to the pick")[::-1]
         to_pick = world.transit(q, approach_path[0], world.validity(), name, "move to the pick")
-        program.steps.append(MotionStep(f"{name}: move to the pick", _timed(to_pick, world.validity(), name,
-                                                                            "move to the pick"), None))
-        program.steps.append(MotionStep(f"{name}: approach", _timed(approach_path, valid, name, "approach"), None))
+        add_motion(name, "move to the pick", to_pick, world.validity(), None)
+        add_motion(name, "approach", approach_path, valid, None)
         program.steps.append(GripperStep(f"{name}: close", max(0.0, grasp.width_m - SQUEEZE_M), name))
         # --- carry -----------------------------------------------------------------------------------------
         del poses[name]
@@ -241,7 +259,7 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         world.hold(name, grasp, grasp.width_m)
         valid = world.validity(frozenset({task.pedestal}))
         lift = world.straight_line(grasp_q, tcp_pick, np.array([0.0, 0.0, LIFT_M]), valid, name, "lift")
-        program.steps.append(MotionStep(f"{name}: lift", _timed(lift, valid, name, "lift"), name))
+        add_motion(name, "lift", lift, valid, name)
         tcp_place = task.world_from_target @ grasp.part_from_tcp
         ignore_at_target = frozenset(task.touches_at_target)
         valid_insert = world.validity(ignore_at_target)
@@ -254,8 +272,8 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
             raise TaskPlanningError("goal_in_collision", name, "move to the target",
                                     f"the pre-place configuration collides ({world._collision_words(insertion[0])})")
         carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
-        program.steps.append(MotionStep(f"{name}: move to the target", _timed(carry, valid, name, "carry"), name))
-        program.steps.append(MotionStep(f"{name}: insert", _timed(insertion, valid_insert, name, "insert"), name))
+        add_motion(name, "move to the target", carry, valid, name)
+        add_motion(name, "insert", insertion, valid_insert, name)
         # --- release ---------------------------------------------------------------------------------------
         program.steps.append(GripperStep(f"{name}: open", grasp.opening_m, name))
         poses[name] = task.world_from_target
@@ -264,7 +282,7 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         valid = world.validity(frozenset({name}))
         retreat = world.straight_line(place_q, tcp_place, -tcp_place.rotation[:, 2] * APPROACH_M, valid, name,
                                       "retreat")
-        program.steps.append(MotionStep(f"{name}: retreat", _timed(retreat, valid, name, "retreat"), None))
+        add_motion(name, "retreat", retreat, valid, None)
         q = retreat[-1]
         opening = tasks[index + 1].grasp.opening_m if index + 1 < len(tasks) else 0.08
         if abs(opening - grasp.opening_m) > 1e-6:
@@ -278,9 +296,21 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         if progress is not None:
             progress((index + 1) / len(tasks))
     world.hold(None, None, opening)
-    home = world.transit(q, np.asarray(home_q, dtype=np.float64), world.validity(), "-", "return home")
-    program.steps.append(MotionStep("return home", _timed(home, world.validity(), "-", "return home"), None))
+    park = _park_configuration(np.asarray(home_q, dtype=np.float64), world.validity())
+    home = world.transit(q, park, world.validity(), "-", "return home")
+    program.steps.append(MotionStep("return home", _timed(world, home, world.validity(), "-", "return home")))
     return plan
+
+
+def _park_configuration(home_q: np.ndarray, valid) -> np.ndarray:
+    """Where the arm ends: home, or, when the finished assembly stands where the arm would be, home swung aside
+    about the base (joint 1) by the smallest angle that clears it."""
+    for swing in (0.0, 0.5, -0.5, 1.0, -1.0, 1.57, -1.57, 2.2, -2.2):
+        q = home_q.copy()
+        q[0] += swing
+        if valid(q):
+            return q
+    return home_q
 
 
 def box_part(name: str, size_m: tuple[float, float, float]) -> ConvexPart:

@@ -172,8 +172,9 @@ def candidate_places(area: KittingArea, half_xy: np.ndarray,
 def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: dict[str, list[Grasp]],
                  grasp_ok_at_target: Callable[[str, Grasp], bool], area: KittingArea,
                  prefer_near_xy: Sequence[float] = (0.5, 0.0), reach: Reach | None = None) -> list[KittingSlot]:
-    """A slot for every part, in the order given (put the first-assembled parts first: they get the places
-    nearest ``prefer_near_xy``, usually the jig).
+    """A slot for every part (returned in the order given), the largest footprints laid out first, each in the
+    free place nearest ``prefer_near_xy`` (usually the jig). Each part's ``candidates`` are tried in the order
+    given (rank them for the target: the pick is usually the easier end).
 
     ``grasp_ok_at_target(part, grasp)`` says whether a grasp (part frame) also works where the part is placed;
     ``reach`` whether the robot's arm reaches it at the pick among the parts already laid out (and keeps
@@ -183,14 +184,17 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
     slots: list[KittingSlot] = []
     placed_meshes: dict[str, trimesh.Trimesh] = {}
     prefer = np.asarray(prefer_near_xy, dtype=np.float64)
-    for name, mesh in zip(names, meshes):
+    # largest footprints first (they need the roomy places), ties in the order given
+    area_of = {name: float(np.prod(np.sort(mesh.extents)[1:])) for name, mesh in zip(names, meshes)}
+    by_size = sorted(range(len(names)), key=lambda k: (-round(area_of[names[k]], 4), k))
+    for name, mesh in ((names[k], meshes[k]) for k in by_size):
         chosen = _place_one(name, mesh, candidates[name], grasp_ok_at_target, area, prefer, reach, slots,
                             placed_meshes)
         if chosen is None:
             raise KittingError(_why_not(name, mesh, candidates[name], grasp_ok_at_target, area, prefer))
         slots.append(chosen)
         placed_meshes[name] = mesh
-    return slots
+    return sorted(slots, key=lambda slot: names.index(slot.part))
 
 
 def _obstacles_near(slots: list[KittingSlot], corners: np.ndarray,
@@ -228,7 +232,9 @@ def _place_one(name, mesh, grasps, grasp_ok_at_target, area, prefer, reach, slot
             own = [(pedestal.mesh(), pedestal.world_from_pedestal)]
             obstacles = own + _obstacles_near(slots, corners, meshes)
             chosen, reached = None, None
-            for grasp in feasible_grasps(grasps, world_from_part, obstacles, None, floor_z=area.table_z_m):
+            at_pick = {_grasp_key(g) for g in feasible_grasps(grasps, world_from_part, obstacles, None,
+                                                              floor_z=area.table_z_m)}
+            for grasp in (g for g in grasps if _grasp_key(g) in at_pick):  # caller's order (best at target first)
                 key = id(grasp)
                 if key not in usable_at_target:
                     usable_at_target[key] = bool(grasp_ok_at_target(name, grasp))
@@ -249,6 +255,12 @@ def _place_one(name, mesh, grasps, grasp_ok_at_target, area, prefer, reach, slot
                 continue
             return KittingSlot(name, world_from_part, pedestal, chosen, probability, corners, reached)
     return None
+
+
+def _grasp_key(grasp: Grasp) -> tuple:
+    """The same grasp whatever its ranking scores (ranking returns re-scored copies)."""
+    return (tuple(np.round(grasp.part_from_tcp.position, 9)), tuple(np.round(grasp.part_from_tcp.quat_wxyz, 9)),
+            round(grasp.opening_m, 9))
 
 
 def _neighbours_still_graspable(slots, mesh, world_from_part, pedestal, corners, area) -> bool:

@@ -1,0 +1,209 @@
+"""The stages of ``python -m cell.run`` on checked inputs, filling the report as they go.
+
+Perception (or the given poses) and pose repair give the target assembly (assembly frame: metres, +z up, floor at
+z = 0); the sequence planner orders it; :mod:`cell.plan` lays out the kit and plans and times every pick and
+place; :mod:`cell.simulate` executes the program with physics and measures every part's final error; the
+program is checked against the Panda's limits before anything is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from cell.inputs import Parts
+from cell.report import assembly_with_poses, pose_json
+from cell.run import EXIT_OK, EXIT_PLANNING, EXIT_SIMULATION, BadInput, Console, StageFailed
+from cell.scene import Scene
+from planning.assembly import Assembly, AssemblyPart
+from planning.pose import Pose
+
+REPAIR_GIVEN_POSES = False  # given (--poses) targets are taken as they are; predicted ones are repaired
+
+
+class Pipeline:
+    def __init__(self, scene: Scene, parts: Parts, image: np.ndarray | None, given: dict[str, Pose] | None,
+                 args: argparse.Namespace, console: Console, report: dict) -> None:
+        self.scene, self.parts, self.image, self.given = scene, parts, image, given
+        self.args, self.console, self.report = args, console, report
+        self.target: Assembly | None = None
+        self.plan = None
+        self.simulation = None
+        self.samples = None
+        self.entries = {name: {"name": name, "order": None} for name in parts.names}
+        report["parts"] = list(self.entries.values())
+
+    # --- 1-2: target poses ------------------------------------------------------------------------------------
+    def targets(self) -> None:
+        if self.given is not None:
+            with self.console.stage("perception", "skipped (--poses gives the target poses)"):
+                poses = dict(self.given)
+            self.report["perception"] = {"source": "poses file"}
+        else:
+            with self.console.stage("perception", "poses from the image"):
+                poses = self._predict()
+        assembly = Assembly(self.parts.files[0].parent.parent.name or "object",
+                            [AssemblyPart(n, m, poses[n], f"parts/{f.name}")
+                             for n, m, f in zip(self.parts.names, self.parts.meshes, self.parts.files)])
+        with self.console.stage("repair", "contacts, interpenetration, alignment"):
+            assembly = self._repair(assembly)
+        for part in assembly.parts:
+            self.entries[part.name]["target_assembly_from_part"] = pose_json(part.assembly_from_part)
+            self.entries[part.name]["target_world_from_part"] = pose_json(
+                self.scene.fixture.world_from_assembly @ part.assembly_from_part)
+        from cell.plan import out_of_reach
+
+        far = out_of_reach(self.scene, assembly)
+        if far:
+            name, distance = far[0]
+            raise BadInput(f"part {name!r}: its target on the jig is {distance:.2f} m from the robot's shoulder, out "
+                           f"of the Panda's reach; scale the object down (--units) or move the jig "
+                           f"([fixture] world_from_assembly in the scene file)")
+        self.target = assembly
+
+    def _predict(self) -> dict[str, Pose]:
+        from perception.predict import PredictionError, predict
+
+        try:
+            prediction = predict(self.image, dict(zip(self.parts.names, self.parts.meshes)),
+                                 checkpoint=self.args.checkpoint)
+        except PredictionError as exc:
+            raise BadInput(str(exc)) from exc
+        self.report["perception"] = prediction.summary()
+        return dict(prediction.assembly_from_part)
+
+    def _repair(self, assembly: Assembly) -> Assembly:
+        from planning.collision import ConvexPart
+        from planning.repair import repair_poses
+
+        if self.given is not None and not REPAIR_GIVEN_POSES:
+            self.report["repair"] = {"applied": False, "reason": "poses given"}
+            return assembly
+        convex = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
+        poses, repair = repair_poses(convex, [p.assembly_from_part for p in assembly.parts])
+        for name in assembly.part_names:
+            self.entries[name]["repair"] = {"translation_m": repair.translation_m[name],
+                                            "rotation_deg": repair.rotation_deg[name]}
+        self.report["repair"] = {"applied": True,
+                                 "deepest_penetration_before_m": repair.deepest_penetration_before_m,
+                                 "deepest_penetration_after_m": repair.deepest_penetration_after_m}
+        return assembly_with_poses(assembly, dict(zip(assembly.part_names, poses)))
+
+    # --- 3-7: sequence, kitting, motion, timing, simulation ---------------------------------------------------
+    def plan_and_simulate(self) -> int:
+        from cell.plan import PlanningFailed, plan_cell
+        from planning.motion import MotionSettings
+        from planning.sequence import plan_assembly_sequence
+
+        with self.console.stage("sequence", "assembly by disassembly"):
+            sequence = plan_assembly_sequence(self.target, seed=self.args.seed)
+        if not sequence.success:
+            raise StageFailed(EXIT_PLANNING, "sequence", sequence.reason)
+        for index, step in enumerate(sequence.steps, start=1):
+            entry = self.entries[step.part]
+            entry.update(order=index, insertion_direction=[float(v) for v in step.insertion_direction],
+                         fastened_to=list(step.fastened_to))
+        self.console.say("    order: " + " > ".join(sequence.order))
+
+        bar = self.console.bar(len(self.target.parts), "part")
+        current = {"stage": None}
+
+        def on_stage(name: str) -> None:
+            index = ("kitting", "motion").index(name) + 4
+            if current["stage"] is None or name != current["stage"]:
+                detail = {"kitting": "stable poses, grasps valid at pick and target",
+                          "motion": "OMPL paths, straight approaches, Ruckig timing"}[name]
+                self.console.say(f"[{index}/8] {name}: {detail}")
+            current["stage"] = name
+
+        def progress(fraction: float) -> None:
+            bar.n = round(fraction * bar.total)
+            bar.refresh()
+
+        try:
+            self.plan = plan_cell(self.scene, self.target, sequence, seed=self.args.seed,
+                                  motion=MotionSettings(planner=self.args.planner, seed=self.args.seed),
+                                  progress=progress, on_stage=on_stage)
+        except PlanningFailed as exc:
+            raise StageFailed(EXIT_PLANNING, exc.stage, str(exc), exc.part) from exc
+        finally:
+            bar.close()
+            if self.plan is not None:
+                for name in ("kitting", "motion", "timing"):
+                    self.console.stage_seconds[name] = self.plan.seconds[name]
+        for slot in self.plan.slots:
+            self.entries[slot.part]["kitting_world_from_part"] = pose_json(slot.world_from_part)
+            self.entries[slot.part]["grasp"] = {"part_from_tcp": pose_json(slot.grasp.part_from_tcp),
+                                                "width_m": slot.grasp.width_m, "opening_m": slot.grasp.opening_m}
+        self.report["trajectory_duration_s"] = self.plan.program.duration_s
+        self.console.say(f"[6/8] timing: robot program {self.plan.program.duration_s:.1f} s, checked against "
+                         "the Panda's limits")
+        self._check_limits()
+        return self._simulate()
+
+    def _check_limits(self) -> None:
+        from cell.program import CSV_RATE_HZ, LimitViolation, check_limits
+
+        self.samples = self.plan.program.sample(CSV_RATE_HZ)
+        lower, upper = self.plan.joint_limits
+        try:
+            check_limits(self.samples, lower, upper)
+        except LimitViolation as exc:
+            raise StageFailed(EXIT_PLANNING, "timing", f"the timed program breaks a limit: {exc}") from exc
+
+    def _simulate(self) -> int:
+        from cell.simulate import SimPart, SimSettings, StaticBody, simulate_program
+
+        plan = self.plan
+        fasten = {name: tuple(self.entries[name].get("fastened_to", ())) for name in self.target.part_names}
+        parts = [SimPart(t.part, self.target.part(t.part).mesh, t.world_from_pick, t.world_from_target,
+                         tuple("fixture" if n == "floor" else n for n in fasten[t.part]))
+                 for t in plan.tasks]
+        static = [StaticBody(o.name, o.mesh, o.world_from_obstacle) for o in plan.static]
+        settings = SimSettings(record_every_s=None if self.args.no_animation else 0.25)
+        bar = self.console.bar(100, "%")
+        with self.console.stage("simulation", f"PyBullet physics, {plan.program.duration_s:.0f} s of robot motion"):
+            try:
+                self.simulation = simulate_program(plan.program, parts, static, self.scene.robot.world_from_base,
+                                                   settings, progress=lambda f: _advance(bar, f))
+            finally:
+                bar.close()
+        result = self.simulation
+        for part in result.parts:
+            entry = self.entries[part.name]
+            entry.update(final_world_from_part=pose_json(part.world_from_final),
+                         position_error_m=part.position_error_m, rotation_error_deg=part.rotation_error_deg,
+                         within_tolerance=part.within_tolerance)
+        self.report["simulation"] = result.summary()
+        if not result.success:
+            raise StageFailed(EXIT_SIMULATION, "simulation", result.failure_words())
+        return EXIT_OK
+
+    # --- 8: files -------------------------------------------------------------------------------------------
+    def write(self, folder) -> None:
+        from PIL import Image
+
+        from cell.program import write_exports
+        from cell.report import overview_image
+
+        if self.plan is not None and self.samples is not None:
+            lower, upper = self.plan.joint_limits
+            write_exports(self.plan.program, folder, lower, upper)
+        if self.target is not None:
+            final = None
+            if self.simulation is not None:
+                assembly_from_world = self.scene.fixture.world_from_assembly.inverse()
+                final = assembly_with_poses(self.target, {p.name: assembly_from_world @ p.world_from_final
+                                                          for p in self.simulation.parts})
+            Image.fromarray(overview_image(self.image, self.target, final, seed=self.args.seed)).save(
+                folder / "overview.png")
+        if self.simulation is not None and self.simulation.frames:
+            from cell.simulate import write_gif
+
+            write_gif(self.simulation.frames, folder / "animation.gif")
+
+
+def _advance(bar, fraction: float) -> None:
+    bar.n = round(100 * fraction)
+    bar.refresh()
