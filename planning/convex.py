@@ -53,6 +53,9 @@ def is_nearly_convex(component: trimesh.Trimesh, tolerance: float = CONVEXITY_TO
 def _decompose(component: trimesh.Trimesh) -> list[trimesh.Trimesh]:
     try:
         pieces = trimesh.decomposition.convex_decomposition(component, maxConvexHulls=_MAX_HULLS_PER_COMPONENT)
+    except ImportError as exc:  # not a property of the mesh: say so rather than cache a hull in its place
+        raise ImportError("convex decomposition needs the vhacdx package, a dependency of image-assembly: "
+                          "pip install vhacdx (or pip install -e . in the repository)") from exc
     except Exception:  # a decomposition failure must not stop planning: fall back to the hull
         return [component.convex_hull]
     if isinstance(pieces, dict):
