@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import fcl
 import numpy as np
 import trimesh
+from scipy.spatial import ConvexHull
 
 from planning.convex import convex_pieces
 from planning.gripper import convex_to_fcl
@@ -27,16 +28,20 @@ def _unique_axes(normals: np.ndarray) -> np.ndarray:
     return normals[np.sort(keep)]
 
 
-def _edge_axes(vertices: np.ndarray, coplanar_rad: float = 1e-6) -> np.ndarray:
-    """Unit edge directions (sign-free, unique) of the convex hull of ``vertices`` (N, 3); the diagonals that
-    triangulate a flat face are not edges."""
+def hull_edge_axes(vertices: np.ndarray, coplanar_rad: float = 1e-6) -> np.ndarray:
+    """(E, 3) unit edge directions (sign-free, unique) of the convex hull of ``vertices`` (N, 3); the diagonals
+    that triangulate a flat face are not edges. A flat or degenerate point set gives the three coordinate axes."""
     try:
-        hull = trimesh.convex.convex_hull(vertices)
-    except Exception:  # flat or degenerate piece: every pair of its points may bound an edge, use its box axes
+        hull = ConvexHull(np.asarray(vertices, dtype=np.float64))
+    except Exception:  # qhull refuses flat or degenerate input
         return np.eye(3)
-    real = np.asarray(hull.face_adjacency_angles) > coplanar_rad
-    ends = np.asarray(hull.vertices)[np.asarray(hull.face_adjacency_edges)[real]]
-    directions = ends[:, 1] - ends[:, 0]
+    simplices, normals = hull.simplices, hull.equations[:, :3]
+    # facet s and its neighbour across from its j-th vertex share the edge made of the other two vertices
+    s, j = np.nonzero(hull.neighbors >= 0)
+    bent = np.sum(normals[s] * normals[hull.neighbors[s, j]], axis=1) < np.cos(coplanar_rad)
+    s, j = s[bent], j[bent]
+    first, second = simplices[s, (j + 1) % 3], simplices[s, (j + 2) % 3]
+    directions = hull.points[second] - hull.points[first]
     length = np.linalg.norm(directions, axis=1)
     directions = directions[length > 1e-12] / length[length > 1e-12, None]
     if len(directions) == 0:
@@ -56,7 +61,7 @@ class ConvexPart:
     piece_vertices: list[np.ndarray]
     piece_normals: list[np.ndarray]  # unique face-normal axes of each piece (sign-free), part frame
     vertices: np.ndarray = field(repr=False)  # all hull vertices stacked, for bounds
-    _edge_axes: dict[int, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
+    _edge_axes: dict[int, np.ndarray] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @staticmethod
     def from_mesh(name: str, mesh: trimesh.Trimesh) -> ConvexPart:
@@ -73,7 +78,7 @@ class ConvexPart:
         """(E, 3) unit directions of the edges of piece ``k`` (part frame, sign-free, duplicates removed): the
         edges between faces that are not coplanar, computed once from the piece's hull."""
         if k not in self._edge_axes:
-            self._edge_axes[k] = _edge_axes(self.piece_vertices[k])
+            self._edge_axes[k] = hull_edge_axes(self.piece_vertices[k])
         return self._edge_axes[k]
 
     def piece_bounds(self, world_from_part: Pose) -> np.ndarray:

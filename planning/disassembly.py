@@ -94,6 +94,7 @@ class _Planner:
         self.deadline = time.perf_counter() + time_budget_s
         self.directions = {name: removal_directions(self._own_axes(name)) for name in self.names}
         self.top_z = {n: float(self.parts[n].bounds(self.poses[n])[1, 2]) for n in self.names}
+        self.world_vertices = {n: self.poses[n].apply(self.parts[n].vertices) for n in self.names}
         bounds = {n: self.parts[n].bounds(self.poses[n]) for n in self.names}
         self.gap = {a: {b: float(box_gap(bounds[a], bounds[b])) for b in self.names} for a in self.names}
         self._blocked: dict[tuple[str, int, str], bool] = {}
@@ -121,9 +122,8 @@ class _Planner:
         key = (name, k)
         if key not in self._floor_ok:
             direction = self.directions[name][k]
-            moving = self.poses[name].apply(self.parts[name].vertices)
-            others = [self.poses[n].apply(self.parts[n].vertices) for n in self.names if n != name]
-            travel = max([travel_to_clear_m(moving, o, direction) for o in others] + [0.0])
+            others = [self.world_vertices[n] for n in self.names if n != name]
+            travel = max([travel_to_clear_m(self.world_vertices[name], o, direction) for o in others] + [0.0])
             self._floor_ok[key] = leaves_above_floor(self.parts[name], self.poses[name], direction, travel,
                                                      self.floor_z_m)
         return self._floor_ok[key]

@@ -28,6 +28,7 @@ whose approach points against it (the hand on the side the part is heading for) 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -37,6 +38,7 @@ import fcl
 import numpy as np
 import trimesh
 
+from planning.collision import hull_edge_axes
 from planning.convex import mesh_key
 from planning.gripper import (
     FINGER_PAD_WIDTH_M,
@@ -232,11 +234,14 @@ def _piece_poses(gripper: GripperCollisionModel, frame_from_tcp: np.ndarray, ope
 
 def _piece_aabbs(gripper: GripperCollisionModel, pieces: np.ndarray) -> np.ndarray:
     """(N, 3, 4, 4) piece poses -> (N, 3, 2, 3) world AABBs of the pieces' hull vertices."""
-    out = []
+    n = len(pieces)
+    out = np.empty((n, 3, 2, 3))
     for k, v in enumerate(gripper.piece_vertices()):
-        pts = v[None] @ np.swapaxes(pieces[:, k, :3, :3], 1, 2) + pieces[:, k, None, :3, 3]
-        out.append(_aabbs(pts))
-    return np.stack(out, axis=1)
+        # one matrix product for all poses: (N * 3, 3) rotation rows against (3, V) vertices -> (N, 3, V)
+        rotated = (pieces[:, k, :3, :3].reshape(-1, 3) @ v.T).reshape(n, 3, -1)
+        out[:, k, 0] = rotated.min(axis=2) + pieces[:, k, :3, 3]
+        out[:, k, 1] = rotated.max(axis=2) + pieces[:, k, :3, 3]
+    return out
 
 
 def _piece_centres(gripper: GripperCollisionModel, pieces: np.ndarray) -> np.ndarray:
@@ -261,6 +266,36 @@ class _Stats:
     collision_free: int = 0
 
 
+def _first_hits(mesh: trimesh.Trimesh, origins: np.ndarray,
+                directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """First surface hit of each ray (part frame, metres): (H, 3) locations, (H,) ray indices (ascending) and
+    (H, 3) face normals there. Closed convex meshes are intersected plane by plane (the ray's entry, or its exit
+    when it starts inside); other meshes through trimesh's ray engine."""
+    planes = _convex_planes(mesh)
+    if planes is None:
+        locations, ray_index, tri_index = mesh.ray.intersects_location(origins, directions, multiple_hits=False)
+        order = np.argsort(ray_index, kind="stable")  # deterministic order, whatever the ray engine returns
+        return locations[order], ray_index[order], np.asarray(mesh.face_normals)[tri_index[order]]
+    normals, offsets = planes
+    rate = directions @ normals.T  # (R, F): how fast the ray approaches each face plane
+    room = offsets - origins @ normals.T  # (R, F): >= 0 on the inner side
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = room / rate
+    t_exit = np.where(rate > 1e-12, t, np.inf)
+    t_enter = np.where(rate < -1e-12, t, -np.inf)
+    exit_face, enter_face = np.argmin(t_exit, axis=1), np.argmax(t_enter, axis=1)
+    rows = np.arange(len(origins))
+    t_out, t_in = t_exit[rows, exit_face], t_enter[rows, enter_face]
+    parallel_outside = np.any((np.abs(rate) <= 1e-12) & (room < 0), axis=1)
+    meets = (t_in <= t_out) & (t_out > 0) & ~parallel_outside
+    from_outside = t_in > 0
+    distance = np.where(from_outside, t_in, t_out)
+    face = np.where(from_outside, enter_face, exit_face)
+    ray_index = np.flatnonzero(meets)
+    locations = origins[ray_index] + distance[ray_index, None] * directions[ray_index]
+    return locations, ray_index, normals[face[ray_index]]
+
+
 def _antipodal_pairs(
     mesh: trimesh.Trimesh, seed: int, n_samples: int, friction: float, stats: _Stats
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -272,20 +307,15 @@ def _antipodal_pairs(
     stats.samples = len(points)
     if len(points) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    locations, ray_index, tri_index = mesh.ray.intersects_location(
-        points - normals * _RAY_INSET_M, -normals, multiple_hits=False
-    )
+    locations, ray_index, n2 = _first_hits(mesh, points - normals * _RAY_INSET_M, -normals)
     stats.hits = len(ray_index)
     if len(ray_index) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    order = np.argsort(ray_index, kind="stable")  # deterministic order, whatever the ray engine returns
-    locations, ray_index, tri_index = locations[order], ray_index[order], tri_index[order]
     p1, p2 = points[ray_index], locations
     axis = p2 - p1
     width = np.linalg.norm(axis, axis=1)
     good = width > _MIN_WIDTH_M
     axis[good] /= width[good, None]
-    n2 = np.asarray(mesh.face_normals)[tri_index]
     cos_cone = math.cos(math.atan(friction))
     in_cone = good & (np.sum(n2 * axis, axis=1) >= cos_cone) & (np.sum(-normals[ray_index] * axis, axis=1) >= cos_cone)
     stats.in_cone = int(np.count_nonzero(in_cone))
@@ -313,6 +343,43 @@ def _candidate_poses(p1: np.ndarray, p2: np.ndarray, n_approaches: int) -> tuple
     return poses.reshape(-1, 4, 4), np.repeat(width, n_approaches), pair
 
 
+@functools.lru_cache(maxsize=4)
+def _probe_points(gripper: GripperCollisionModel) -> tuple[np.ndarray, ...]:
+    """Per piece (hand, left, right), (P, 3) points strictly inside its hull, in its link frame: the hull's vertex
+    mean, and for the hand a few points on its axis just behind the palm (where a part edge meets the hand)."""
+    out = []
+    for k, vertices in enumerate(gripper.piece_vertices()):
+        points = [vertices.mean(axis=0)]
+        if k == 0:
+            palm_z = float(vertices[:, 2].max())
+            points += [np.array([0.0, 0.0, palm_z - dz]) for dz in (0.002, 0.01, 0.025)]
+        points = np.array(points)
+        hull = trimesh.convex.convex_hull(vertices)
+        depth = points @ hull.face_normals.T - np.sum(hull.face_normals * hull.triangles[:, 0], axis=1)
+        out.append(points[np.all(depth < -1e-4, axis=1)])
+    return tuple(out)
+
+
+def _surely_inside_convex(gripper: GripperCollisionModel, mesh: trimesh.Trimesh, pieces: np.ndarray,
+                          near: np.ndarray) -> np.ndarray:
+    """(N,) bool: a point inside some hand piece lies strictly inside ``mesh`` (part frame), so the piece overlaps
+    the part: FCL would report the collision, or the enclosed-piece test would. Decided only for convex closed
+    meshes (a point is inside when it lies behind every face plane); all False otherwise."""
+    hits = np.zeros(len(pieces), dtype=bool)
+    planes = _convex_planes(mesh) if near.any() else None
+    if planes is None:
+        return hits
+    normals, offsets = planes
+    for k, probes in enumerate(_probe_points(gripper)):
+        rows = np.flatnonzero(near[:, k] & ~hits)
+        if len(probes) == 0 or len(rows) == 0:
+            continue
+        points = np.einsum("nij,pj->npi", pieces[rows, k, :3, :3], probes) + pieces[rows, k, None, :3, 3]
+        inside = np.all(points @ normals.T - offsets < -1e-4, axis=2)  # (rows, P)
+        hits[rows[inside.any(axis=1)]] = True
+    return hits
+
+
 def _free_of_part(
     gripper: GripperCollisionModel,
     mesh: trimesh.Trimesh,
@@ -325,12 +392,12 @@ def _free_of_part(
     boxes = _piece_aabbs(gripper, pieces)
     part_box = np.asarray(mesh.bounds)
     near = _overlap(boxes, part_box)  # (N, 3)
-    free = np.ones(len(poses), dtype=bool)
+    free = ~_surely_inside_convex(gripper, mesh, pieces, near)  # exact shortcut: no narrow phase needed there
     part = fcl.CollisionObject(bvh, fcl.Transform())
     objects = gripper.collision_objects()
     request = fcl.CollisionRequest()
     check_order = (1, 2, 0)  # fingers first: they are the likeliest to touch
-    for i in np.flatnonzero(near.any(axis=1)):
+    for i in np.flatnonzero(free & near.any(axis=1)):
         for k in check_order:
             if not near[i, k]:
                 continue
@@ -344,7 +411,7 @@ def _free_of_part(
     if np.any(enclosed):
         idx, piece = np.nonzero(enclosed)
         centres = _piece_centres(gripper, pieces)[idx, piece]
-        inside = mesh.contains(centres)
+        inside = _contains(mesh, centres)
         free[idx[inside]] = False
     return free
 
@@ -358,6 +425,75 @@ def _pad_probe_offsets() -> np.ndarray:
     left = np.column_stack([cells[:, 0], np.ones(len(cells)), cells[:, 1]])
     right = np.column_stack([cells[:, 0], -np.ones(len(cells)), cells[:, 1]])
     return np.concatenate([left, right])
+
+
+def _contains(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
+    """(N,) bool: which points (mesh frame) lie inside ``mesh``. Closed convex meshes: behind every face plane;
+    other closed meshes: generalised winding number >= 1/2 (exact for closed surfaces, shells may overlap);
+    open meshes: trimesh's ray test."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    planes = _convex_planes(mesh)
+    if planes is not None:
+        return np.all(points @ planes[0].T <= planes[1], axis=1)
+    if not mesh.is_watertight:
+        return mesh.contains(points)
+    triangles = np.asarray(mesh.triangles)
+    winding = np.zeros(len(points))
+    chunk = max(1, 200_000 // max(1, len(triangles)))
+    for start in range(0, len(points), chunk):
+        corners = triangles[None] - points[start:start + chunk, None, None]  # (P, T, 3, 3)
+        a, b, c = corners[:, :, 0], corners[:, :, 1], corners[:, :, 2]
+        la, lb, lc = (np.linalg.norm(v, axis=2) for v in (a, b, c))
+        det = np.sum(a * np.cross(b, c), axis=2)
+        dots = np.sum(a * b, axis=2) * lc + np.sum(b * c, axis=2) * la + np.sum(c * a, axis=2) * lb
+        # solid angle of each triangle seen from the point (Van Oosterom and Strackee)
+        winding[start:start + chunk] = np.sum(2.0 * np.arctan2(det, la * lb * lc + dots), axis=1) / (4.0 * np.pi)
+    return winding >= 0.5
+
+
+def _convex_planes(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray] | None:
+    """(F, 3) outward face normals and (F,) plane offsets of a closed convex mesh (``n . x <= offset`` inside),
+    or None when the mesh is not closed and convex."""
+    if not (mesh.is_watertight and mesh.is_convex):
+        return None
+    normals = np.asarray(mesh.face_normals)
+    offsets = np.sum(normals * np.asarray(mesh.triangles)[:, 0], axis=1)
+    _, keep = np.unique(np.round(normals, 9), axis=0, return_index=True)  # coplanar triangles: one plane
+    return normals[keep], offsets[keep]
+
+
+def _contact_scores_convex(mesh: trimesh.Trimesh, planes: tuple[np.ndarray, np.ndarray], poses: np.ndarray,
+                           widths: np.ndarray) -> np.ndarray:
+    """:func:`_contact_scores` for a closed convex part, vectorised: a pad cell (a thin box) touches the surface
+    when it overlaps the solid (separating axes: the box's axes, the part's face normals, their edges' cross
+    products; exact for two convex polytopes) without lying wholly inside it."""
+    z0, z1 = PAD_Z_RANGE_IN_TCP_M
+    half = np.array([FINGER_PAD_WIDTH_M / _PAD_CELLS_X, 2 * _PROBE_HALF_THICKNESS_M, (z1 - z0) / _PAD_CELLS_Z]) / 2
+    rotations = poses[:, :3, :3]  # (N, 3, 3): columns are the cells' box axes in the part frame
+    local = _pad_probe_offsets()[None] * np.column_stack([np.ones(len(widths)), widths / 2, np.ones(len(widths))])[
+        :, None]  # (N, C, 3)
+    centres = np.einsum("nij,ncj->nci", rotations, local) + poses[:, None, :3, 3]
+    normals, offsets = planes
+    vertices = np.asarray(mesh.vertices)
+    box_axes = np.swapaxes(rotations, 1, 2)  # (N, 3, 3): rows are the box axes
+    edges = hull_edge_axes(vertices)
+    cross = np.cross(edges[None, :, None], box_axes[:, None]).reshape(len(poses), -1, 3)
+    length = np.linalg.norm(cross, axis=2, keepdims=True)
+    cross = np.where(length > 1e-9, cross / np.maximum(length, 1e-12), 0.0)  # parallel pairs: a null axis
+    moving_axes = np.concatenate([box_axes, cross], axis=1)  # (N, A, 3), per pose
+    proj = moving_axes @ vertices.T  # (N, A, V)
+    n_faces = (len(poses), len(normals))
+    lo = np.concatenate([proj.min(axis=2), np.broadcast_to((normals @ vertices.T).min(axis=1), n_faces)], axis=1)
+    hi = np.concatenate([proj.max(axis=2), np.broadcast_to(offsets, n_faces)], axis=1)  # convex: the face planes
+    axes = np.concatenate([moving_axes, np.broadcast_to(normals, (len(poses), *normals.shape))], axis=1)
+    radius = np.abs(axes @ rotations) @ half  # (N, A): the box's half extent along each axis
+    centre_proj = centres @ np.swapaxes(axes, 1, 2)  # (N, C, A)
+    overlaps = np.all((centre_proj - radius[:, None] <= hi[:, None]) & (centre_proj + radius[:, None] >= lo[:, None]),
+                      axis=2)  # (N, C)
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+    corners = centres[:, :, None] + np.einsum("nij,sj->nsi", rotations, signs * half)[:, None]  # (N, C, 8, 3)
+    inside = np.all(corners @ normals.T <= offsets, axis=(2, 3))  # every corner behind every face plane
+    return np.mean(overlaps & ~inside, axis=1)
 
 
 def _contact_scores(bvh: fcl.BVHModel, poses: np.ndarray, widths: np.ndarray) -> np.ndarray:
@@ -438,7 +574,11 @@ def _compute_candidates(
             order = np.argsort(-centroid, kind="stable")
             _, first = np.unique(_dedup_keys(poses[order]), axis=0, return_index=True)
             chosen = order[np.sort(first)][: _ENOUGH_DISTINCT_FACTOR * max_candidates]
-            contact = _contact_scores(bvh, poses[chosen], widths[chosen])
+            planes = _convex_planes(mesh)
+            if planes is not None:
+                contact = _contact_scores_convex(mesh, planes, poses[chosen], widths[chosen])
+            else:
+                contact = _contact_scores(bvh, poses[chosen], widths[chosen])
             w = DEFAULT_WEIGHTS
             total = np.array([_total_score(c, p, 0.5, 0.5, w) for c, p in zip(centroid[chosen], contact)])
             best = np.argsort(-total, kind="stable")[:max_candidates]
@@ -619,9 +759,9 @@ class ObstacleSet:
         return len(self.meshes)
 
     def contains(self, index: int, points_world: np.ndarray) -> np.ndarray:
-        """(N,) bool: which world points lie inside obstacle ``index``."""
-        m = np.linalg.inv(self.world_from_mesh[index])
-        return self.meshes[index].contains(np.asarray(points_world) @ m[:3, :3].T + m[:3, 3])
+        """(N,) bool: which world points lie inside obstacle ``index`` (see :func:`_contains`)."""
+        m = self.world_from_mesh[index]
+        return _contains(self.meshes[index], (np.asarray(points_world) - m[:3, 3]) @ m[:3, :3])  # R^T (p - t)
 
 
 def _translations(offsets: np.ndarray) -> np.ndarray:
@@ -690,14 +830,24 @@ def feasible_grasps(
     n_grasps, n_steps = poses.shape[:2]
     openings = np.repeat([g.opening_m for g in ranked], n_steps)
     pieces = _piece_poses(gripper, poses.reshape(-1, 4, 4), openings).reshape(n_grasps, n_steps, 3, 4, 4)
-    boxes = _piece_aabbs(gripper, pieces.reshape(-1, 3, 4, 4)).reshape(n_grasps, n_steps, 3, 2, 3)
+    # every step is a translation of the grasp's pose at the target: its boxes are the target's boxes, shifted
+    target_boxes = _piece_aabbs(gripper, pieces[:, 0])  # (G, 3, 2, 3)
+    step_shifts = poses[:, :, :3, 3] - poses[:, :1, :3, 3]  # (G, S, 3)
+    boxes = target_boxes[:, None] + step_shifts[:, :, None, None, :]
 
     ok = np.ones(n_grasps, dtype=bool)
     if floor_z is not None:
         ok &= np.all(boxes[..., 0, 2] >= floor_z + floor_margin_m, axis=(1, 2))
     if len(obstacle_set):
         near = _overlap(boxes[:, :, :, None], obstacle_set.boxes[None, None, None])  # (G, S, 3, O)
-        enclosed = _inside(boxes[:, :, :, None], obstacle_set.boxes[None, None, None])
+        # a piece wholly inside an obstacle touches no triangle: test the centres of pieces whose box lies inside
+        # an obstacle's box, all at once per obstacle
+        enclosed = ok[:, None, None, None] & _inside(boxes[:, :, :, None], obstacle_set.boxes[None, None, None])
+        if np.any(enclosed):
+            centres = _piece_centres(gripper, pieces.reshape(-1, 3, 4, 4)).reshape(n_grasps, n_steps, 3, 3)
+            for o in np.unique(np.nonzero(enclosed)[3]):
+                where = np.nonzero(enclosed[..., o])
+                enclosed[(*where, o)] = obstacle_set.contains(o, centres[where])
         objects = gripper.collision_objects()
         request = fcl.CollisionRequest()
         for gi in np.flatnonzero(ok & near.any(axis=(1, 2, 3))):
@@ -710,14 +860,10 @@ def feasible_grasps(
                     p = pieces[gi, si, k]
                     objects[k].setTransform(fcl.Transform(p[:3, :3], p[:3, 3]))
                     for o in targets:
-                        if fcl.collide(objects[k], obstacle_set.objects[o], request, fcl.CollisionResult()):
+                        if enclosed[gi, si, k, o] or fcl.collide(objects[k], obstacle_set.objects[o], request,
+                                                                 fcl.CollisionResult()):
                             hit = True
                             break
-                        if enclosed[gi, si, k, o]:
-                            centre = p[:3, :3] @ gripper.piece_vertices()[k].mean(axis=0) + p[:3, 3]
-                            if obstacle_set.contains(o, centre[None])[0]:
-                                hit = True
-                                break
                     if hit:
                         break
                 if hit:

@@ -9,12 +9,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
 
 from planning.assembly import Assembly, AssemblyError, read_assembly, read_poses
 from planning.collision import ConvexPart
+from planning.convex import mesh_key
 from planning.disassembly import SequenceResult, _direction_label, plan_sequence
 from planning.fixture import PAD_HEIGHT_M, fixture_pads
 from planning.grasp import Grasp, antipodal_grasps, feasible_grasps
@@ -37,26 +39,59 @@ def with_poses(assembly: Assembly, poses: dict[str, Pose], source: str) -> Assem
     return Assembly(assembly.name, parts, dict(assembly.metadata))
 
 
+class GraspCandidates(Mapping):
+    """Antipodal grasp candidates per part name (part frame), computed on first access and shared between parts
+    with identical meshes: a part draws its sampling seed from ``default_rng([seed, i])``, ``i`` the index of the
+    first part in the assembly with the same mesh (:func:`planning.convex.mesh_key`), so identical boards get one
+    candidate set, computed once (:func:`planning.grasp.antipodal_grasps` caches by mesh and seed)."""
+
+    def __init__(self, assembly: Assembly, seed: int = 0) -> None:
+        self._meshes = {p.name: p.mesh for p in assembly.parts}
+        first: dict[str, int] = {}
+        self._seed_index = {p.name: first.setdefault(mesh_key(p.mesh), i) for i, p in enumerate(assembly.parts)}
+        self._seed = seed
+        self._computed: dict[str, list[Grasp]] = {}
+
+    def __getitem__(self, name: str) -> list[Grasp]:
+        if name not in self._computed:
+            if name not in self._meshes:
+                raise KeyError(name)
+            rng = np.random.default_rng([self._seed, self._seed_index[name]])
+            self._computed[name] = antipodal_grasps(self._meshes[name], rng)
+        return self._computed[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._meshes)
+
+    def __len__(self) -> int:
+        return len(self._meshes)
+
+    def computed(self) -> dict[str, list[Grasp]]:
+        """The candidate lists computed so far (nothing is computed by this call)."""
+        return dict(self._computed)
+
+
 class GraspChecker:
-    """Grasp feasibility at the target: antipodal candidates per part (computed once, part frame), checked
-    against the parts present near the target, the fixture pads (:mod:`planning.fixture`) and the cell's table
-    under them."""
+    """Grasp feasibility at the target: antipodal candidates per part (:class:`GraspCandidates`, part frame,
+    computed when first needed), checked against the parts present near the target, the fixture pads
+    (:mod:`planning.fixture`) and the cell's table under them."""
 
     def __init__(self, assembly: Assembly, seed: int = 0) -> None:
         self.assembly = assembly
-        self.candidates: dict[str, list[Grasp]] = {}
-        for index, part in enumerate(assembly.parts):
-            self.candidates[part.name] = antipodal_grasps(part.mesh, np.random.default_rng([seed, index]))
+        self.candidates = GraspCandidates(assembly, seed)
         self.bounds = {p.name: _world_bounds(p) for p in assembly.parts}
         self.pads = fixture_pads(assembly.part_names, assembly.meshes_in_assembly_frame())
         self.pad_obstacles = [(pad.mesh(), pad.assembly_from_pad) for pad in self.pads]
 
     def __call__(self, name: str, present: frozenset, insertion_direction: np.ndarray) -> Grasp | None:
+        candidates = self.candidates[name]
+        if not candidates:
+            return None
         part = self.assembly.part(name)
         near = [self.assembly.part(n) for n in sorted(present)
                 if _box_distance(self.bounds[name], self.bounds[n]) < HAND_REACH_M]
         obstacles = [(p.mesh, p.assembly_from_part) for p in near] + self.pad_obstacles
-        feasible = feasible_grasps(self.candidates[name], part.assembly_from_part, obstacles, insertion_direction,
+        feasible = feasible_grasps(candidates, part.assembly_from_part, obstacles, insertion_direction,
                                    floor_z=-PAD_HEIGHT_M)
         return feasible[0] if feasible else None
 
@@ -79,7 +114,7 @@ def plan_assembly_sequence(assembly: Assembly, seed: int = 0, check_grasps: bool
     checker = GraspChecker(assembly, seed) if check_grasps else None
     result = plan_sequence(parts, poses, checker, time_budget_s=time_budget_s)
     if not result.success and checker is not None:
-        graspless = [n for n, c in checker.candidates.items() if not c]
+        graspless = [n for n, c in checker.candidates.items() if not c]  # computes the ones not asked for yet
         if graspless:
             from planning.grasp import explain_no_grasp
 

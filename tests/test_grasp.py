@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from planning import grasp as grasp_module
 from planning import gripper as hand
 from planning.assembly import read_assembly
 from planning.grasp import (
@@ -257,6 +258,70 @@ def test_width_limit():
     assert all(g.width_m == pytest.approx(0.07) for g in antipodal_grasps(ok, np.random.default_rng(0)))
     assert antipodal_grasps(too_wide, np.random.default_rng(0)) == []
     assert "7.8 cm thick" in explain_no_grasp(too_wide)
+
+
+@pytest.mark.parametrize("shape", ["board", "leg"])
+def test_convex_shortcuts_give_the_grasps_of_the_general_path(shape, monkeypatch):
+    # closed convex parts skip the ray engine, most narrow-phase calls and the FCL pad probes; nothing may change
+    mesh = {"board": trimesh.creation.box((0.3, 0.2, 0.012)),
+            "leg": trimesh.creation.cylinder(radius=0.015, height=0.25, sections=24)}[shape]
+    grasp_module._CANDIDATE_CACHE.clear()
+    fast = antipodal_grasps(mesh, np.random.default_rng(5))
+    monkeypatch.setattr(grasp_module, "_convex_planes", lambda mesh: None)
+    grasp_module._CANDIDATE_CACHE.clear()
+    general = antipodal_grasps(mesh, np.random.default_rng(5))
+    grasp_module._CANDIDATE_CACHE.clear()
+    assert len(fast) == len(general) > 20
+    for a, b in zip(fast, general):
+        assert a.part_from_tcp.is_close(b.part_from_tcp, 1e-9)
+        assert a.contact_score == b.contact_score and a.score == pytest.approx(b.score, abs=1e-12)
+
+
+def test_pad_contact_scores_of_convex_parts_match_fcl():
+    # TCP frames scattered over a small block (closing axis and approach at random): the pad cells land fully on,
+    # partly over and wholly off its faces
+    block = trimesh.creation.box((0.02, 0.03, 0.012))
+    rng = np.random.default_rng(4)
+    rotations = np.array([Pose(np.zeros(3), q / np.linalg.norm(q)).rotation for q in rng.normal(size=(300, 4))])
+    poses = np.tile(np.eye(4), (300, 1, 1))
+    poses[:, :3, :3], poses[:, :3, 3] = rotations, rng.uniform(-0.015, 0.015, (300, 3))
+    widths = rng.uniform(0.005, 0.03, 300)
+    planes = grasp_module._convex_planes(block)
+    fast = grasp_module._contact_scores_convex(block, planes, poses, widths)
+    slow = grasp_module._contact_scores(grasp_module._bvh(block), poses, widths)
+    np.testing.assert_array_equal(fast, slow)
+    assert len(np.unique(fast)) >= 5  # many different fractions, not only all-on and all-off
+
+
+def test_inside_tests_of_closed_meshes():
+    rng = np.random.default_rng(0)
+    tall, short = trimesh.creation.box((0.1, 0.2, 0.3)), trimesh.creation.box((0.1, 0.1, 0.1))
+    short.apply_translation((0.1, 0.0, 0.0))
+    joined = trimesh.util.concatenate([tall, short])  # two closed shells touching along a face, as merged parts are
+    points = rng.uniform(joined.bounds[0] - 0.02, joined.bounds[1] + 0.02, (3000, 3))
+    truth = (np.all(np.abs(points) <= [0.05, 0.1, 0.15], axis=1)
+             | np.all(np.abs(points - [0.1, 0.0, 0.0]) <= 0.05, axis=1))
+    np.testing.assert_array_equal(grasp_module._contains(joined, points), truth)
+    world_from_joined = Pose(np.array([0.3, -0.2, 0.1]), np.array([0.5, 0.5, 0.5, 0.5]))
+    obstacles = ObstacleSet([(joined, world_from_joined), (tall, world_from_joined)])
+    np.testing.assert_array_equal(obstacles.contains(0, world_from_joined.apply(points)), truth)
+    in_tall = truth & (points[:, 0] <= 0.05)
+    np.testing.assert_array_equal(obstacles.contains(1, world_from_joined.apply(points)), in_tall)
+
+
+def test_rays_through_a_convex_part_meet_trimesh():
+    mesh = trimesh.creation.cylinder(radius=0.02, height=0.1, sections=16)
+    rng = np.random.default_rng(2)
+    origins = rng.uniform(-0.06, 0.06, (400, 3))
+    directions = rng.normal(size=(400, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    locations, rays, normals = grasp_module._first_hits(mesh, origins, directions)
+    expected, expected_rays, triangles = mesh.ray.intersects_location(origins, directions, multiple_hits=False)
+    order = np.argsort(expected_rays)
+    np.testing.assert_array_equal(rays, expected_rays[order])
+    np.testing.assert_allclose(locations, expected[order], atol=1e-9)
+    np.testing.assert_allclose(normals, mesh.face_normals[triangles[order]], atol=1e-9)
+    assert 50 < len(rays) < 400  # some rays start inside, some enter from outside, some miss
 
 
 # --- in the world ---------------------------------------------------------------------------------------------------

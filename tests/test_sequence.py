@@ -10,13 +10,15 @@ import pytest
 import trimesh
 
 from perception.synth import generate
+from planning import sweep
 from planning.assembly import Assembly, AssemblyPart, write_assembly
-from planning.collision import ConvexPart, signed_distance
+from planning.collision import ConvexPart, hull_edge_axes, signed_distance
 from planning.contact import FLOOR, contact_graph, support_graph
+from planning.convex import convex_pieces
 from planning.disassembly import plan_sequence
 from planning.pose import Pose
-from planning.sequence import plan_assembly_sequence
-from planning.sweep import blocks
+from planning.sequence import GraspChecker, plan_assembly_sequence
+from planning.sweep import blocks, sweep_overlaps
 
 IDENTITY = [1.0, 0.0, 0.0, 0.0]
 
@@ -87,6 +89,98 @@ def test_touching_and_penetrating_are_told_apart():
     np.testing.assert_allclose(result.normal_ab, [0, 0, -1], atol=1e-9)  # "top" must move up: bottom->top is -n
     lifted = Pose([0, 0, 0.08], IDENTITY)
     assert signed_distance(parts[0], lifted, parts[1], poses[1]).distance_m == pytest.approx(0.01, abs=1e-6)
+
+
+def l_prism(scale=1.0) -> trimesh.Trimesh:
+    """An L-shaped prism (10 x 10 cm outline, 3 cm wide arms, 2 cm thick) as one closed, non-convex shell."""
+    outline = np.array([[0, 0], [0.1, 0], [0.1, 0.03], [0.03, 0.03], [0.03, 0.1], [0, 0.1]]) * scale
+    return trimesh.creation.extrude_triangulation(outline, np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 5]]),
+                                                  0.02 * scale)
+
+
+def test_non_convex_part_is_decomposed_with_vhacdx(tmp_path, monkeypatch):
+    monkeypatch.setenv("IMAGE_ASSEMBLY_CACHE", str(tmp_path))
+    shape = l_prism()
+    pieces = convex_pieces(shape)
+    assert len(pieces) >= 2 and all(p.is_convex for p in pieces)
+    assert sum(p.volume for p in pieces) == pytest.approx(shape.volume, rel=0.05)
+    assert not any(p.contains([[0.07, 0.07, 0.01]])[0] for p in pieces)  # the notch of the L stays empty
+    assert len(list(tmp_path.glob("*.npz"))) == 1  # cached on disk
+
+    monkeypatch.setitem(sys.modules, "vhacdx", None)  # as if the dependency were missing: say so, cache nothing
+    with pytest.raises(ImportError, match="vhacdx"):
+        convex_pieces(l_prism(scale=1.5))
+    assert len(list(tmp_path.glob("*.npz"))) == 1
+
+
+def test_hull_edges_of_box_and_cylinder():
+    box_edges = hull_edge_axes(trimesh.creation.box((0.1, 0.2, 0.3)).vertices)
+    np.testing.assert_allclose(np.abs(box_edges[np.argsort(np.argmax(np.abs(box_edges), axis=1))]), np.eye(3))
+    cylinder = trimesh.creation.cylinder(radius=0.02, height=0.1, sections=32)
+    assert len(hull_edge_axes(cylinder.vertices)) == 17  # 16 rim directions (opposite rim edges are parallel) + axis
+
+
+def test_sweep_interval_is_exact():
+    cube = trimesh.creation.box((1.0, 1.0, 1.0))
+    a, b = cube.vertices, cube.vertices + [2.0, 0.0, 0.0]
+    normals = np.eye(3)
+    edges = (np.eye(3), np.eye(3))
+    # a moves +x: it meets b after 1, overlaps deeper than 0.1 from 1.1 until 2.9, and has left b after 3
+    window = sweep_overlaps(a, normals, b, normals, np.array([1.0, 0, 0]), 10.0, 0.1, edges)
+    assert window == pytest.approx((1.1, 2.9))
+    assert sweep_overlaps(a, normals, b, normals, np.array([1.0, 0, 0]), 1.05, 0.1, edges) is None  # stops short
+    assert sweep_overlaps(a, normals, b, normals, np.array([0, 1.0, 0]), 10.0, 0.1, edges) is None  # slides away
+    # a box beside b in y, overlapping it by 1 in x: moving +x by any amount keeps that overlap but never deepens
+    # it past the y contact (they only touch)
+    beside = cube.vertices + [0.5, 1.0, 0.0]
+    assert sweep_overlaps(beside, normals, b - [1.5, 0, 0], normals, np.array([1.0, 0, 0]), 5.0, 1e-4, edges) is None
+
+
+def test_sweep_sees_an_overlap_shorter_than_a_step():
+    # a door board standing in front of a floor board, its lower edge 3 mm below the floor board's top: leaving
+    # diagonally up and back, it scrapes 1.4 mm into the floor board's front edge over its first 4 mm of travel
+    floor = box_part("floor", (0.4, 0.26, 0.018), [0, 0, 0.009])
+    door = box_part("door", (0.2, 0.013, 0.26), [0, -0.13 - 0.0065, 0.015 + 0.13])
+    parts, poses = convex_parts(Assembly("door", [floor, door]))
+    diagonal = np.array([0.0, 1.0, 1.0]) / np.sqrt(2.0)
+    assert signed_distance(parts[1], poses[1], parts[0], poses[0]).distance_m == pytest.approx(0.0, abs=1e-9)
+    scraped = Pose(poses[1].position + 0.002 * diagonal, IDENTITY)
+    assert signed_distance(parts[1], scraped, parts[0], poses[0]).distance_m < -0.001
+    assert blocks(parts[1], poses[1], parts[0], poses[0], diagonal)
+    assert not blocks(parts[1], poses[1], parts[0], poses[0], np.array([0.0, -1.0, 0.0]))  # straight out: free
+    assert not blocks(parts[1], poses[1], parts[0], poses[0], np.array([0.0, 0.0, 1.0]))  # sliding up its face
+
+
+@pytest.mark.parametrize("category", ["chair", "cabinet"])
+def test_sweep_fallback_agrees_with_the_exact_sweep(category, monkeypatch):
+    assembly = generate(category, "mixed", np.random.default_rng([78, 0]), category)
+    parts, poses = convex_parts(assembly)
+    directions = [np.array(d, float) / np.linalg.norm(d) for d in [(0, 0, 1), (1, 0, 0), (0, -1, 0), (1, 0, 1)]]
+    queries = [(i, j, d) for i in range(len(parts)) for j in range(len(parts)) if i != j for d in directions]
+    exact = [blocks(parts[i], poses[i], parts[j], poses[j], d) for i, j, d in queries]
+    monkeypatch.setattr(sweep, "MAX_EDGE_PAIRS", 0)  # face normals, then conservative advancement
+    advanced = [blocks(parts[i], poses[i], parts[j], poses[j], d) for i, j, d in queries]
+    assert any(exact) and not all(exact)
+    assert exact == advanced
+
+
+def test_grasp_candidates_are_lazy_and_shared_by_identical_parts():
+    board = trimesh.creation.box((0.2, 0.03, 0.02))
+    assembly = Assembly("two_boards", [
+        AssemblyPart("left", board, Pose([0, -0.05, 0.01], IDENTITY)),
+        AssemblyPart("right", board.copy(), Pose([0, 0.05, 0.01], IDENTITY)),
+        box_part("block", (0.05, 0.05, 0.04), [0.2, 0, 0.02]),
+    ])
+    checker = GraspChecker(assembly, seed=3)
+    assert checker.candidates.computed() == {}
+    assert list(checker.candidates) == ["left", "right", "block"] and len(checker.candidates) == 3
+    left = checker.candidates["left"]
+    assert list(checker.candidates.computed()) == ["left"]
+    right = checker.candidates["right"]
+    assert len(left) > 0 and [g.part_from_tcp for g in left] == [g.part_from_tcp for g in right]
+    assert dict(checker.candidates.items()).keys() == {"left", "right", "block"}
+    with pytest.raises(KeyError):
+        checker.candidates["missing"]
 
 
 def test_two_box_stack_bottom_first():
