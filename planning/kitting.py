@@ -34,6 +34,7 @@ from planning.pose import Pose
 NEIGHBOUR_REACH_M = 0.25  # parts whose footprints are farther apart than this cannot touch each other's hand
 MAX_PLACES_PER_POSE = 40  # places tried (with grasp checks) for one stable pose before the next pose
 RADIAL_STEP_M = 0.03
+CAPACITY_FRACTION = 0.75  # rectangles in a ring pack no denser than this: fail at once above it
 ANGLE_STEP_DEG = 3.0
 
 
@@ -150,23 +151,51 @@ def _box_corners(lo: Sequence[float], hi: Sequence[float]) -> np.ndarray:
 
 def candidate_places(area: KittingArea, half_xy: np.ndarray,
                      prefer_near_xy: np.ndarray) -> list[tuple[np.ndarray, float]]:
-    """Places (centre_xy, ring angle) for a footprint of half extents ``half_xy`` (long side first), nearest
-    to ``prefer_near_xy`` first, inside the ring and the table and outside the keep-out rectangles."""
+    """Places (centre_xy, direction of the long side in rad) for a footprint of half extents ``half_xy`` (long
+    side first), nearest to ``prefer_near_xy`` first, inside the ring and the table and outside the keep-out
+    rectangles. The long side runs along the ring or, where that packs better, across it."""
     centre = np.asarray(area.centre_xy, dtype=np.float64)
     lo, hi = np.asarray(area.table_min_xy), np.asarray(area.table_max_xy)
     places = []
-    for radius in np.arange(area.inner_radius_m + half_xy[1], area.outer_radius_m + 1e-9, RADIAL_STEP_M):
-        for angle in np.deg2rad(np.arange(-180.0, 180.0, ANGLE_STEP_DEG)):
-            xy = centre + radius * np.array([np.cos(angle), np.sin(angle)])
-            corners = _corners(xy, angle + np.pi / 2, half_xy)
-            if np.any(corners < lo) or np.any(corners > hi):
-                continue
-            grown = _corners(xy, angle + np.pi / 2, half_xy + area.gap_m / 2)
-            if any(_polygons_overlap(grown, _box_corners(k_lo, k_hi)) for k_lo, k_hi in area.keep_out):
-                continue
-            places.append((xy, float(angle)))
+    for across in (False, True):
+        depth = half_xy[0] if across else half_xy[1]  # half extent along the radius
+        for radius in np.arange(area.inner_radius_m + depth, area.outer_radius_m + 1e-9, RADIAL_STEP_M):
+            for angle in np.deg2rad(np.arange(-180.0, 180.0, ANGLE_STEP_DEG)):
+                xy = centre + radius * np.array([np.cos(angle), np.sin(angle)])
+                long_yaw = angle if across else angle + np.pi / 2
+                corners = _corners(xy, long_yaw, half_xy)
+                if np.any(corners < lo) or np.any(corners > hi):
+                    continue
+                grown = _corners(xy, long_yaw, half_xy + area.gap_m / 2)
+                if any(_polygons_overlap(grown, _box_corners(k_lo, k_hi)) for k_lo, k_hi in area.keep_out):
+                    continue
+                places.append((xy, float(long_yaw)))
     places.sort(key=lambda p: float(np.linalg.norm(p[0] - prefer_near_xy)))
     return places
+
+
+def footprint_area_m2(meshes: Sequence[trimesh.Trimesh], gap_m: float) -> float:
+    """The smallest area the parts can cover lying in their most probable stable poses, each footprint grown
+    by half the gap on every side (m^2)."""
+    total = 0.0
+    for mesh in meshes:
+        rest_from_part = stable_rest_poses(mesh, max_poses=1)[0][0]
+        rested = mesh.vertices @ rest_from_part[:3, :3].T
+        extent = rested.max(axis=0) - rested.min(axis=0)
+        total += float((extent[0] + gap_m) * (extent[1] + gap_m))
+    return total
+
+
+def ring_area_m2(area: KittingArea, cell_m: float = 0.01) -> float:
+    """Area of the ring that lies on the table and outside the keep-out rectangles (m^2), on a grid."""
+    lo, hi = np.asarray(area.table_min_xy), np.asarray(area.table_max_xy)
+    xs, ys = np.arange(lo[0], hi[0], cell_m) + cell_m / 2, np.arange(lo[1], hi[1], cell_m) + cell_m / 2
+    grid = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+    radius = np.linalg.norm(grid - np.asarray(area.centre_xy), axis=1)
+    keep = (radius >= area.inner_radius_m) & (radius <= area.outer_radius_m)
+    for k_lo, k_hi in area.keep_out:
+        keep &= ~np.all((grid >= k_lo) & (grid <= k_hi), axis=1)
+    return float(keep.sum()) * cell_m**2
 
 
 def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: dict[str, list[Grasp]],
@@ -184,6 +213,12 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
     slots: list[KittingSlot] = []
     placed_meshes: dict[str, trimesh.Trimesh] = {}
     prefer = np.asarray(prefer_near_xy, dtype=np.float64)
+    needed, offered = footprint_area_m2(meshes, area.gap_m), ring_area_m2(area)
+    if needed > CAPACITY_FRACTION * offered:
+        raise KittingError(f"the parts need about {needed:.2f} m2 of kitting area lying on their largest faces "
+                           f"(gaps included), the kitting ring offers {offered:.2f} m2 within reach on the table: "
+                           "the object is too large for this cell (use a scaled-down model of it, or a scene "
+                           "with a larger kitting area)")
     # largest footprints first (they need the roomy places), ties in the order given
     area_of = {name: float(np.prod(np.sort(mesh.extents)[1:])) for name, mesh in zip(names, meshes)}
     by_size = sorted(range(len(names)), key=lambda k: (-round(area_of[names[k]], 4), k))
@@ -217,10 +252,10 @@ def _place_one(name, mesh, grasps, grasp_ok_at_target, area, prefer, reach, slot
         long_is_x = half[0] >= half[1]
         half_ring = np.array([max(half), min(half)])  # along the ring, across it
         tried = 0
-        for xy, angle in candidate_places(area, half_ring, prefer):
-            yaw = angle + np.pi / 2 if long_is_x else angle
-            corners = _corners(xy, angle + np.pi / 2, half_ring)
-            grown = _corners(xy, angle + np.pi / 2, half_ring + area.gap_m / 2)
+        for xy, long_yaw in candidate_places(area, half_ring, prefer):
+            yaw = long_yaw if long_is_x else long_yaw - np.pi / 2  # the rest frame's long axis along long_yaw
+            corners = _corners(xy, long_yaw, half_ring)
+            grown = _corners(xy, long_yaw, half_ring + area.gap_m / 2)
             if any(_polygons_overlap(grown, other) for other in occupied):
                 continue
             tried += 1

@@ -73,6 +73,9 @@ _TOP_OVERHANG_SIDE = (0.02, 0.035)  # overlay top beyond the sides' outer faces
 _GRIP_GAP = (0.034, 0.04)  # under an inset top or the divider: from a front's top edge to the board's underside
 _PLINTH_RECESS = (0.025, 0.05)  # front kick board behind the carcass front
 _BACK_RECESS = (0.025, 0.04)  # an inset back panel in front of the sides' rear edges
+# sized for the Panda cell (scenes/cell.toml): the flat boards of a larger cabinet do not all fit the kitting
+# ring within the arm's reach (planning/kitting.py checks the area first)
+MAX_WIDTH_M, MAX_DEPTH_M, MAX_HEIGHT_M = 0.44, 0.34, 0.46
 _MIN_REGION = 0.08  # interior height of a door / shelf region next to drawers
 _FRONT_FLOOR_GAP = 0.015  # least height of the fronts' lower edges above the floor
 _DOOR_FINGER_ROOM = 0.025  # shelves' top faces at least this far below the doors' top edge
@@ -115,8 +118,8 @@ def build_cabinet(rng: np.random.Generator, b: Builder) -> dict:
     div_grip = uniform(rng, *_GRIP_GAP) if divider and (drawer_position == "bottom" or n_doors) else 0.0
     # no deeper than wide: horizontal boards are held at their front edges (see the module notes)
     depth_lo = 0.28 if n_drawers else 0.2
-    width = uniform(rng, max(0.25, depth_lo / 0.9 + 2 * t), 0.6 - 2 * overhang_side)
-    depth = uniform(rng, depth_lo, min(0.45, 0.9 * (width - 2 * t)))
+    width = uniform(rng, max(0.25, depth_lo / 0.9 + 2 * t), MAX_WIDTH_M - 2 * overhang_side)
+    depth = uniform(rng, depth_lo, min(MAX_DEPTH_M, 0.9 * (width - 2 * t)))
     base_h = uniform(rng, 0.02, 0.06) if base != "none" else 0.0
     raise_h = uniform(rng, 0.01, 0.05) if base == "none" and chance(rng, 0.35) else 0.0
     bottom_lo = base_h + raise_h  # underside of the bottom board
@@ -137,7 +140,8 @@ def build_cabinet(rng: np.random.Generator, b: Builder) -> dict:
     else:
         min_interior = 0.1
     fixed = bottom_lo + 2 * t  # up to the bottom board's top face, and the top board
-    height = uniform(rng, max(0.25, fixed + min_interior + 0.01), 0.6)
+    lowest = max(0.25, fixed + min_interior + 0.01)
+    height = uniform(rng, lowest, max(lowest, MAX_HEIGHT_M))
 
     z0 = base_h  # sides' lower ends
     side_h = height - base_h - (t if top == "overlay" else 0.0)
