@@ -1,9 +1,13 @@
 """Evaluate a trained model with the paper's metrics.
 
     python -m perception.evaluate --checkpoint runs/compact/model.pt --data data/chair_l3 --json out/eval.json
+    python -m perception.evaluate --assemblies ASSEMBLIES_DIR --views 2 --json out/eval.json [--seed 0]
 
 prints the layout of the paper's Tables 1 and 2 (Part Accuracy, Shape Chamfer, Part Accuracy of visible and of
-invisible parts) and writes them to the JSON file (``part_accuracy`` is the overall figure).
+invisible parts) and writes them to the JSON file (``part_accuracy`` is the overall figure). ``--data`` reads
+views from dataset folders; ``--assemblies`` renders every assembly folder under a folder on the fly and also
+reports connectivity and the figures after pose repair, the up-axis error, inference time and peak memory
+(:mod:`perception.evaluate_assemblies`). ``--checkpoint`` defaults to the bundled weights.
 
 In code, :func:`evaluate_samples` takes any iterable of samples in the format of :mod:`perception.data`
 (dictionaries of numpy arrays, one view each): samples read from a dataset folder (:func:`evaluate_folder`) and
@@ -109,29 +113,86 @@ def format_table(rows: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
+def format_extras(figures: dict) -> str:
+    """The figures beyond the paper's table that ``--assemblies`` measures, one line each."""
+    c, up, t = figures["connectivity"], figures["up_error_deg"], figures["inference_s"]
+    lines = [f"connectivity (parts touching another): truth {c['truth']:.3f}, predicted {c['predicted']:.3f}, "
+             f"repaired {c['repaired']:.3f}; objects in one piece: truth {c['truth_connected']:.3f}, "
+             f"predicted {c['predicted_connected']:.3f}, repaired {c['repaired_connected']:.3f}"] if "after_repair" \
+        in figures else []
+    if "deepest_penetration_m" in figures:
+        before, after = figures["deepest_penetration_m"]["before"], figures["deepest_penetration_m"]["after"]
+        lines.append(f"deepest penetration between two parts (mm): before repair mean {1000 * before['mean']:.1f}, "
+                     f"p95 {1000 * before['p95']:.1f}; after mean {1000 * after['mean']:.1f}, "
+                     f"p95 {1000 * after['p95']:.1f}")
+    lines.append(f"up-axis error (deg): mean {up['mean']:.2f}, median {up['median']:.2f}, p95 {up['p95']:.2f}, "
+                 f"max {up['max']:.2f}; within 5 deg: {up['within_5_deg']:.3f}")
+    lines.append(f"depth of the object centre, error (m): mean {figures['depth_error_m']['mean']:.4f}, "
+                 f"p95 {figures['depth_error_m']['p95']:.4f}")
+    lines.append(f"CPU inference per object (s): mean {t['mean']:.3f}, median {t['median']:.3f}, p95 {t['p95']:.3f}, "
+                 f"max {t['max']:.3f}; peak memory {figures['peak_memory_mb']:.0f} MB (process)")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m perception.evaluate", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", required=True, help="model.pt or checkpoint.pt of a training run")
-    parser.add_argument("--data", nargs="+", required=True, help="dataset folders")
-    parser.add_argument("--split", default="test", choices=["train", "val", "test"])
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--data", nargs="+", help="dataset folders")
+    source.add_argument("--assemblies", help="a folder of assembly folders, rendered on the fly")
+    parser.add_argument("--checkpoint", help="model.pt or checkpoint.pt of a training run (default: the bundled "
+                        "weights, perception/weights/compact.pt)")
+    parser.add_argument("--model", choices=sorted(METHOD_NAMES), help="refuse a checkpoint of another network")
+    parser.add_argument("--split", default="test", choices=["train", "val", "test"], help="with --data")
+    parser.add_argument("--views", type=int, default=1, help="with --assemblies: renderings per object")
+    parser.add_argument("--seed", type=int, default=0, help="with --assemblies: object i renders from "
+                        "numpy.random.default_rng([seed, i])")
+    parser.add_argument("--no-repair", action="store_true", help="with --assemblies: skip connectivity and repair")
     parser.add_argument("--json", help="write the figures to this JSON file")
-    parser.add_argument("--limit", type=int, default=0, help="evaluate the first N samples only (0: all)")
+    parser.add_argument("--limit", type=int, default=0, help="evaluate the first N samples (--data) or assembly "
+                        "folders (--assemblies) only (0: all)")
     parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--threads", type=int, help="torch CPU threads (default: 1 with --assemblies, one object at a "
+                        "time as predict runs it; torch's setting with --data)")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
-    device = "cuda" if torch.cuda.is_available() else "cpu"
+    for name in ("views", "batch_size", "threads"):
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            parser.error(f"--{name.replace('_', '-')} must be at least 1, got {value}")
+    from perception.weights import INFERENCE_THREADS, inference_threads, resolve_checkpoint
+
+    device = "cuda" if torch.cuda.is_available() and not args.assemblies else "cpu"
+    threads = args.threads if args.threads or not args.assemblies else INFERENCE_THREADS
     try:
-        model, config, kind = load_model(args.checkpoint, device)
-        summary = evaluate_folder(model, args.data, args.split, args.limit, args.batch_size, device,
-                                  not args.no_progress, config.model.max_parts)
+        checkpoint = resolve_checkpoint(args.checkpoint)
+        model, config, kind = load_model(checkpoint, device)
+        if args.model and kind != args.model:
+            raise ValueError(f"{checkpoint} holds model {kind!r}, not {args.model!r}")
+        if args.assemblies:
+            from perception.evaluate_assemblies import evaluate_assemblies
+
+            with inference_threads(threads):
+                summary = evaluate_assemblies(model, args.assemblies, args.views, args.seed, not args.no_repair,
+                                              config.model.max_parts, args.limit, not args.no_progress)
+        else:
+            with inference_threads(threads):
+                summary = evaluate_folder(model, args.data, args.split, args.limit, args.batch_size, device,
+                                          not args.no_progress, config.model.max_parts)
     except (ConfigError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(format_table({METHOD_NAMES.get(kind, kind): summary}))
+    name = METHOD_NAMES.get(kind, kind)
+    rows = {name: summary}
+    if "after_repair" in summary:
+        rows[f"{name} + repair"] = summary["after_repair"]
+    print(format_table(rows))
+    if args.assemblies:
+        print(format_extras(summary))
     if args.json:
-        record = {"model": kind, "checkpoint": Path(args.checkpoint).name, "split": args.split,
-                  "image_size": config.model.image_size, **summary}
+        record = {"model": kind, "checkpoint": Path(checkpoint).name, "image_size": config.model.image_size,
+                  **({"assemblies": Path(args.assemblies).name, "views": args.views, "seed": args.seed}
+                     if args.assemblies else {"split": args.split}), **summary}
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(record, indent=1) + "\n")
     return 0

@@ -1,0 +1,200 @@
+"""Evaluation on assembly folders rendered on the fly (``python -m perception.evaluate --assemblies DIR``).
+
+Every assembly folder under ``DIR`` (procedural ones from ``python -m perception.synth`` or real furniture) is
+rendered ``views`` times with the project's renderer and :func:`cell.render.sample_camera` (assembly ``i`` in
+sorted order draws from ``numpy.random.default_rng([seed, i])``), run through the model exactly as
+:func:`perception.predict.predict` runs it, and scored against the truth:
+
+- the paper's figures (Part Accuracy, Shape Chamfer, PA of visible and invisible parts), in the network's frame
+  (object-centred camera frame, normalised units; :mod:`perception.metrics`);
+- connectivity: the fraction of parts touching at least one other part (:func:`planning.contact.contact_graph`
+  in the predicted upright assembly frame), and the fraction of objects whose parts form one connected whole;
+- the same after :func:`planning.repair.repair_poses` (mapped back to the network's frame for PA and SC), and
+  the deepest penetration between two parts before and after it (metres);
+- the up-axis error (degrees between the predicted and the true up direction, camera frame), the CPU time of
+  inference per object (normalising the parts, the network, up and frames; not rendering or repair) and the
+  process's peak resident memory.
+"""
+
+from __future__ import annotations
+
+import resource
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import networkx as nx
+import numpy as np
+from torch import nn
+from tqdm import tqdm
+
+from cell.render import Appearance, AssemblyRenderer, Rendering, sample_camera
+from perception.metrics import AssemblyResult, MetricSummary, evaluate_assembly
+from perception.normalize import camera_from_canonical_norm
+from perception.placement import Placement, place_parts
+from perception.predict import PreparedParts, prepare_parts, run_network
+from perception.upright import angle_deg
+from planning.assembly import ASSEMBLY_FILE, Assembly, read_assembly
+from planning.collision import ConvexPart
+from planning.contact import FLOOR, contact_graph
+from planning.pose import Pose
+from planning.repair import repair_poses
+
+
+def assembly_folders(root: str | Path) -> list[Path]:
+    """The assembly folders under ``root`` (its subfolders holding an ``assembly.json``, sorted by name), or
+    ``root`` itself if it is one. Raises ``FileNotFoundError`` naming ``root`` when there is none."""
+    root = Path(root)
+    if (root / ASSEMBLY_FILE).is_file():
+        return [root]
+    if not root.is_dir():
+        raise FileNotFoundError(f"assemblies folder {root} not found")
+    folders = sorted(p for p in root.iterdir() if (p / ASSEMBLY_FILE).is_file())
+    if not folders:
+        raise FileNotFoundError(f"no assembly folders (subfolders with {ASSEMBLY_FILE}) in {root}")
+    return folders
+
+
+def truth_targets(view: Rendering, parts: PreparedParts, centre_camera_m: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The network's targets for one view: quat_wxyz (N, 4) and trans_norm (N, 3) of the canonical parts in the
+    object-centred camera frame (normalised units)."""
+    targets = [camera_from_canonical_norm(pose, canon, centre_camera_m, parts.normalized.scale_per_m)
+               for pose, canon in zip(view.camera_from_part, parts.normalized.part_from_canonical_m)]
+    return np.stack([q for q, _ in targets]), np.stack([t for _, t in targets])
+
+
+def network_frame(camera_from_part: list[Pose], parts: PreparedParts,
+                  centre_camera_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame poses (metres, mesh frames) back in the network's frame (quat (N, 4), trans_norm (N, 3))."""
+    pairs = [camera_from_canonical_norm(pose, canon, centre_camera_m, parts.normalized.scale_per_m)
+             for pose, canon in zip(camera_from_part, parts.normalized.part_from_canonical_m)]
+    return np.stack([q for q, _ in pairs]), np.stack([t for _, t in pairs])
+
+
+def connectivity(convex: list[ConvexPart], assembly_from_part: list[Pose]) -> tuple[float, bool]:
+    """(fraction of parts touching another part, whether all parts form one connected whole), floor excluded."""
+    graph = contact_graph(convex, assembly_from_part)
+    graph.remove_node(FLOOR)
+    if graph.number_of_nodes() <= 1:
+        return 1.0, True
+    touching = sum(1 for node in graph if graph.degree(node) > 0)
+    return touching / graph.number_of_nodes(), nx.is_connected(graph)
+
+
+@dataclass
+class ViewOutcome:
+    """The figures of one rendered view of one object."""
+
+    name: str
+    parts: int
+    before: AssemblyResult
+    after: AssemblyResult | None
+    connectivity: dict
+    up_error_deg: float
+    inference_s: float
+    depth_error_m: float
+    penetration_m: dict = field(default_factory=dict)  # deepest penetration between two parts: before, after repair
+
+
+@dataclass
+class Accumulator:
+    outcomes: list[ViewOutcome] = field(default_factory=list)
+
+    def summary(self) -> dict:
+        before, after = MetricSummary(), MetricSummary()
+        for o in self.outcomes:
+            before.add(o.before)
+            if o.after is not None:
+                after.add(o.after)
+        figures = before.summary()
+        up = np.array([o.up_error_deg for o in self.outcomes])
+        seconds = np.array([o.inference_s for o in self.outcomes])
+
+        def mean_of(key):
+            values = [o.connectivity[key] for o in self.outcomes if key in o.connectivity]
+            return float(np.mean(values)) if values else float("nan")
+
+        figures["connectivity"] = {key: mean_of(key) for key in (
+            "truth", "predicted", "repaired", "truth_connected", "predicted_connected", "repaired_connected")}
+        if after.results:
+            figures["after_repair"] = after.summary()
+            figures["deepest_penetration_m"] = {
+                key: _stats(np.array([o.penetration_m[key] for o in self.outcomes if o.penetration_m]))
+                for key in ("before", "after")}
+        figures["up_error_deg"] = _stats(up) | {"within_5_deg": float(np.mean(up <= 5.0)) if len(up) else float("nan")}
+        figures["depth_error_m"] = _stats(np.array([o.depth_error_m for o in self.outcomes]))
+        figures["inference_s"] = _stats(seconds)
+        figures["peak_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        return figures
+
+
+def _stats(values: np.ndarray) -> dict:
+    if len(values) == 0:
+        return {"mean": float("nan"), "median": float("nan"), "p95": float("nan"), "max": float("nan")}
+    return {"mean": float(np.mean(values)), "median": float(np.median(values)),
+            "p95": float(np.percentile(values, 95)), "max": float(np.max(values))}
+
+
+def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: PreparedParts,
+                  convex: list[ConvexPart] | None, prepare_s: float, max_parts: int, name: str) -> ViewOutcome:
+    """Predict one rendered view and score it (``convex``: the parts' convex pieces for connectivity and repair;
+    ``None`` skips both). ``prepare_s``: the time :func:`prepare_parts` took, counted into the inference time."""
+    bounds = assembly.bounds()
+    centre_camera_m = view.camera_from_assembly.apply(0.5 * (bounds[0] + bounds[1]))
+    gt_quat, gt_trans = truth_targets(view, parts, centre_camera_m)
+    start = time.perf_counter()
+    quat, trans = run_network(model, view.rgb, parts, max_parts)
+    placement: Placement = place_parts(quat, trans, parts.normalized, parts.meshes)
+    inference_s = prepare_s + time.perf_counter() - start
+    points, classes = parts.normalized.points_norm, parts.classes
+    before = evaluate_assembly(points, quat, trans, gt_quat, gt_trans, classes, view.visible_pixels)
+    up_true = view.camera_from_assembly.rotation[:, 2]
+    outcome = ViewOutcome(name, len(parts.meshes), before, None, {}, angle_deg(placement.up.up_camera, up_true),
+                          inference_s, float(abs(placement.centre_camera_m[2] - centre_camera_m[2])))
+    if convex is None:
+        return outcome
+    truth_poses = [p.assembly_from_part for p in assembly.parts]
+    repaired, report = repair_poses(convex, placement.assembly_from_part)
+    outcome.penetration_m = {"before": report.deepest_penetration_before_m, "after": report.deepest_penetration_after_m}
+    camera_from_repaired = [placement.camera_from_assembly @ p for p in repaired]
+    quat_r, trans_r = network_frame(camera_from_repaired, parts, placement.centre_camera_m)
+    outcome.after = evaluate_assembly(points, quat_r, trans_r, gt_quat, gt_trans, classes, view.visible_pixels)
+    for key, poses in (("truth", truth_poses), ("predicted", placement.assembly_from_part), ("repaired", repaired)):
+        fraction, whole = connectivity(convex, poses)
+        outcome.connectivity[key] = fraction
+        outcome.connectivity[f"{key}_connected"] = float(whole)
+    return outcome
+
+
+def evaluate_assemblies(model: nn.Module, root: str | Path, views: int = 1, seed: int = 0, repair: bool = True,
+                        max_parts: int = 20, limit: int = 0, progress: bool = False) -> dict:
+    """Figures over every assembly folder under ``root`` (see the module docstring); ``limit``: the first N
+    folders only (0: all). Adds ``objects`` and ``per_object`` (name, parts, PA, up error, inference time)."""
+    folders = assembly_folders(root)
+    if limit:
+        folders = folders[:limit]
+    accumulator = Accumulator()
+    bar = tqdm(total=len(folders) * views, unit="view", disable=not progress, desc="evaluate")
+    for index, folder in enumerate(folders):
+        assembly = read_assembly(folder)
+        meshes = [p.mesh for p in assembly.parts]
+        start = time.perf_counter()
+        parts = prepare_parts(meshes)
+        prepare_s = time.perf_counter() - start
+        convex = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts] if repair else None
+        rng = np.random.default_rng([seed, index])
+        with AssemblyRenderer(assembly) as renderer:
+            for k in range(views):
+                view = renderer.render(sample_camera(rng, assembly.bounds()), Appearance.sample(rng, len(meshes)))
+                accumulator.outcomes.append(evaluate_view(model, view, assembly, parts, convex, prepare_s, max_parts,
+                                                          f"{folder.name}/view{k}"))
+                bar.update()
+    bar.close()
+    figures = accumulator.summary()
+    figures["objects"] = len(folders)
+    figures["per_object"] = [
+        {"name": o.name, "parts": o.parts, "part_accuracy": float(np.mean(o.before.correct)),
+         "part_accuracy_repaired": float(np.mean(o.after.correct)) if o.after is not None else None,
+         "up_error_deg": round(o.up_error_deg, 3), "inference_s": round(o.inference_s, 4), **o.connectivity}
+        for o in accumulator.outcomes]
+    return figures

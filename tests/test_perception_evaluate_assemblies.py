@@ -1,0 +1,74 @@
+"""``python -m perception.evaluate --assemblies``: render assembly folders on the fly, score, write JSON."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from perception.dataset.build import BuildConfig, build
+from perception.evaluate import main as evaluate_main
+from perception.evaluate_assemblies import assembly_folders, evaluate_assemblies
+from perception.synth import generate
+from perception.train.checkpoint import MODEL
+from perception.train.cli import main as train_main
+from perception.weights import load_for_inference
+from planning.assembly import write_assembly
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    root = tmp_path_factory.mktemp("assemblies_model")
+    build(BuildConfig(category="chair", level="3", count=4, views=1, seed=3), root / "data", progress=False)
+    assert train_main(["--config", "tiny", "--data", str(root / "data"), "--out", str(root / "run"),
+                       "--max-steps", "2", "--no-progress"]) == 0
+    return root / "run" / MODEL
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    """Two small procedural objects (seeds never trained on) as assembly folders, and a stray file."""
+    root = tmp_path_factory.mktemp("assemblies")
+    for i, category in enumerate(("table", "cabinet")):
+        write_assembly(generate(category, "mixed", np.random.default_rng([1000, i]), f"{category}_{i}"),
+                       root / f"{category}_{i}")
+    (root / "README.md").write_text("not an assembly\n")
+    return root
+
+
+def test_cli_writes_part_accuracy_and_the_extra_figures(checkpoint, folder, tmp_path):
+    report = tmp_path / "eval.json"
+    result = subprocess.run(
+        [sys.executable, "-m", "perception.evaluate", "--assemblies", str(folder), "--views", "2", "--seed", "4",
+         "--checkpoint", str(checkpoint), "--json", str(report), "--no-progress"], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    for heading in ("Part Acc.", "Shape Chamfer", "PA visible", "PA invisible", "Ours + repair", "up-axis error",
+                    "connectivity", "CPU inference per object"):
+        assert heading in result.stdout
+    figures = json.loads(report.read_text())
+    assert 0.0 <= figures["part_accuracy"] <= 1.0
+    assert figures["objects"] == 2 and figures["samples"] == 4 and figures["views"] == 2
+    assert figures["connectivity"]["truth"] == 1.0  # designed objects touch where they join
+    assert 0.0 <= figures["after_repair"]["part_accuracy"] <= 1.0
+    assert 0.0 <= figures["up_error_deg"]["mean"] <= 90.0 and figures["inference_s"]["mean"] > 0
+    assert figures["peak_memory_mb"] > 0 and len(figures["per_object"]) == 4
+
+
+def test_same_seed_gives_the_same_figures(checkpoint, folder):
+    model, config, _, _ = load_for_inference(checkpoint)
+    a = evaluate_assemblies(model, folder, views=1, seed=7, repair=False)
+    b = evaluate_assemblies(model, folder, views=1, seed=7, repair=False)
+    assert a["part_accuracy"] == b["part_accuracy"] and a["shape_chamfer"] == b["shape_chamfer"]
+    assert "after_repair" not in a
+
+
+def test_bad_arguments_exit_2_naming_the_value(checkpoint, folder, tmp_path, capsys):
+    assert evaluate_main(["--assemblies", str(tmp_path / "none"), "--checkpoint", str(checkpoint)]) == 2
+    assert "none not found" in capsys.readouterr().err
+    assert evaluate_main(["--assemblies", str(folder), "--checkpoint", str(checkpoint), "--model", "b_gru"]) == 2
+    assert "holds model 'ours', not 'b_gru'" in capsys.readouterr().err
+    assert evaluate_main(["--assemblies", str(folder), "--checkpoint", str(tmp_path / "missing.pt")]) == 2
+    assert "missing.pt not found" in capsys.readouterr().err
+    with pytest.raises(FileNotFoundError, match="no assembly folders"):
+        assembly_folders(tmp_path)
