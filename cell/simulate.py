@@ -1,0 +1,789 @@
+"""Execute an assembly program in PyBullet with physics, and check what it did.
+
+The cell is rebuilt in a headless (DIRECT) client with gravity (-9.81 m/s^2 along world -z): the Panda, the static
+bodies (table, jig pads, pedestals) and every loose part as a dynamic compound of its convex pieces
+(:func:`planning.convex.convex_pieces`), its mass and inertia from its volume at :attr:`SimSettings.density_kg_m3`.
+The parts first settle for :attr:`SimSettings.settle_s` where they lie; one that moves more than
+:attr:`SimSettings.settle_tolerance_m` is reported (the start was not at rest).
+
+The arm follows the program's samples at ``rate_hz`` (one physics step per sample) under position control with the
+Franka's joint torque limits. A gripper step that narrows the opening closes the fingers (position control,
+:attr:`SimSettings.finger_force_n` per finger); when it ends, the part it names is welded to the hand (a fixed
+constraint at their relative pose at that moment) only if both fingers touch it, otherwise the grasp fails and is
+reported. A gripper step that widens the opening releases the weld; the released part is then fastened (fixed
+constraints standing for connectors) to those of its ``fasten_to`` parts it touches, and to the world if
+``fasten_to`` holds ``"fixture"`` and it touches a static body. After the program the world settles again and every
+part's final pose is compared with its target, modulo the part's own symmetries (:mod:`cell.symmetry`).
+
+Unplanned contacts are recorded as events (start, end, program step, the two bodies, deepest penetration):
+
+- a robot link touching anything, except the part it holds, and the part of the pick or place under way during
+  the approach before a grasp, the gripper steps themselves and the retreat after a release;
+- the held part touching anything but the robot, except what it rested on after settling during the grasp and
+  the lift after it, and its ``fasten_to`` neighbours (with the static bodies under its target for "fixture") during
+  the last motion before its release and the release itself.
+
+Joint position and velocity limit violations of the simulated arm are recorded as events too. Times are on the
+program's clock (0 when it starts). Frames: world (+z up, metres); poses ``world_from_*`` use
+:class:`planning.pose.Pose` (quaternions w first).
+
+What a program must allow for:
+
+- PyBullet's Panda collision hulls carry a margin of about 1.1 mm that ``changeDynamics`` does not remove: the
+  fingers stop (and touch) about 1.1 mm short of a part's face, and robot links touch things about 1 mm early. A
+  close command up to the part's width + 2 mm still grasps; the task planner's width - 4 mm squeezes firmly.
+- The fingers move at :attr:`SimSettings.finger_speed_m_s` (0.05 m/s each): a closing step must last at least
+  (opening - width) / 2 / 0.05 s plus a few hundredths (the default 0.5 s covers openings up to 4.5 cm wider).
+- Links and hand get the identified masses and inertias of :data:`LINK_DYNAMICS`, and the link pairs of
+  :data:`planning.robot_collision.ALLOWED_SELF_PAIRS` do not collide (their hulls overlap at every configuration).
+"""
+
+from __future__ import annotations
+
+import colorsys
+import tempfile
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from cell.bullet import BulletClient
+from cell.program import GripperStep, MotionStep, Program
+from cell.robot import VELOCITY_LIMITS, Panda
+from cell.scene import CameraConfig
+from cell.symmetry import part_symmetry, position_error_m, rotation_error_deg
+from planning.convex import convex_pieces, mesh_key
+from planning.pose import Pose
+from planning.robot_collision import ALLOWED_SELF_PAIRS, ARM_JOINTS
+
+FIXTURE = "fixture"  # the name in ``fasten_to`` that stands for the jig (the static bodies under the target)
+MIN_RATE_HZ = 240.0
+ARM_TORQUE_LIMITS_NM = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)  # Franka's published joint torque limits
+# Link masses (kg) and principal inertias (kg m^2) identified by Gaz et al. (RA-L 2019); the inertias in pybullet_data's
+# URDF (0.1 kg m^2 for every link) are placeholders that the wrist's 12 Nm cannot accelerate as the real arm does.
+LINK_DYNAMICS = {
+    "panda_link1": (4.970684, (0.70337, 0.70661, 0.009117)),
+    "panda_link2": (0.646926, (0.007962, 0.02811, 0.025995)),
+    "panda_link3": (3.228604, (0.037242, 0.036155, 0.01083)),
+    "panda_link4": (3.587895, (0.025853, 0.019552, 0.028323)),
+    "panda_link5": (1.225946, (0.035549, 0.029474, 0.008627)),
+    "panda_link6": (1.666555, (0.001964, 0.004354, 0.005433)),
+    "panda_link7": (0.735522, (0.012516, 0.010027, 0.004815)),
+    "panda_hand": (0.73, (0.001, 0.0025, 0.0017)),
+    "panda_leftfinger": (0.015, (2.375e-6, 2.375e-6, 7.5e-7)),
+    "panda_rightfinger": (0.015, (2.375e-6, 2.375e-6, 7.5e-7)),
+}
+ROBOT = "robot"
+EVENT_GAP_S = 0.1  # contacts of the same pair (limit breaches of the same joint) closer in time form one event
+DEFAULT_CAMERA = CameraConfig(eye=(1.3, -0.9, 0.9), target=(0.45, 0.1, 0.2), fov_deg=50.0, width_px=320,
+                              height_px=240)
+
+
+# --- inputs ---------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SimPart:
+    """A loose part. ``mesh``: part frame, metres. ``fasten_to``: parts (or :data:`FIXTURE`) it is fastened to once
+    released at its target."""
+
+    name: str
+    mesh: trimesh.Trimesh
+    world_from_start: Pose  # where it lies when the program starts (kitting)
+    world_from_target: Pose  # where the program puts it
+    fasten_to: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class StaticBody:
+    """A fixed body (table top, jig pad, pedestal): ``mesh`` in its own frame, metres."""
+
+    name: str
+    mesh: trimesh.Trimesh
+    world_from_body: Pose
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    """How to simulate and what counts as success (metres, degrees, seconds, newtons as the names say)."""
+
+    rate_hz: float = MIN_RATE_HZ  # physics steps per second, one program sample per step (>= 240)
+    position_tolerance_m: float = 0.005  # a part's centre within this of its target ...
+    rotation_tolerance_deg: float = 3.0  # ... and turned by less than this (modulo its symmetries) is placed
+    settle_s: float = 0.5  # the world settles this long before the program and again after it
+    settle_tolerance_m: float = 0.003  # a part moving more while settling at the start is reported
+    density_kg_m3: float = 600.0  # wood
+    friction: float = 0.6  # parts and static bodies (the fingers keep the URDF's 1.0)
+    finger_force_n: float = 20.0  # per finger (the URDF's effort limit)
+    finger_speed_m_s: float = 0.05  # per finger
+    grasp_contact_m: float = 0.0002  # a finger this close to the part (metres, as PyBullet measures) touches it
+    fasten_distance_m: float = 0.002  # a released part this close to a neighbour is fastened to it
+    contact_distance_m: float = 0.0  # contact points at this distance or closer (negative: penetration) count
+    joint_limit_margin_rad: float = 1e-3  # a joint this far beyond its position limit breaks it
+    velocity_tolerance: float = 0.03  # relative: a joint faster than (1 + this) x its velocity limit breaks it
+    record_every_s: float | None = None  # simulated seconds between animation frames; None: no frames
+    camera: CameraConfig = DEFAULT_CAMERA  # for the frames
+    urdf: str = "franka_panda/panda.urdf"  # inside pybullet_data
+
+    def __post_init__(self) -> None:
+        if not self.rate_hz >= MIN_RATE_HZ:
+            raise ValueError(f"SimSettings.rate_hz must be at least {MIN_RATE_HZ:.0f} Hz, got {self.rate_hz}")
+        for name in ("position_tolerance_m", "rotation_tolerance_deg", "density_kg_m3", "finger_force_n",
+                     "finger_speed_m_s", "grasp_contact_m", "fasten_distance_m"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"SimSettings.{name} must be positive, got {getattr(self, name)}")
+        if self.settle_s < 0:
+            raise ValueError(f"SimSettings.settle_s must not be negative, got {self.settle_s}")
+        if self.record_every_s is not None and not self.record_every_s > 0:
+            raise ValueError(f"SimSettings.record_every_s must be positive or None, got {self.record_every_s}")
+
+
+# --- results --------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PartResult:
+    """Where one part ended (world frame). ``position_error_m``: distance of its centre from the target's (metres);
+    ``rotation_error_deg``: smallest rotation to the target over the part's symmetries (degrees)."""
+
+    name: str
+    world_from_final: Pose
+    position_error_m: float
+    rotation_error_deg: float
+    within_tolerance: bool
+    grasped: bool  # the hand held it at some point
+    fastened_to: tuple[str, ...]  # what it was fastened to at release ("fixture" for the world)
+    settle_motion_m: float  # how far its centre moved while settling at the start
+    moved_after_release_m: float | None  # how far its centre moved from its release to the end (None: never released)
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "world_from_final": self.world_from_final.to_dict(),
+                "position_error_m": self.position_error_m, "rotation_error_deg": self.rotation_error_deg,
+                "within_tolerance": self.within_tolerance, "grasped": self.grasped,
+                "fastened_to": list(self.fastened_to), "settle_motion_m": self.settle_motion_m,
+                "moved_after_release_m": self.moved_after_release_m}
+
+
+@dataclass(frozen=True)
+class ContactEvent:
+    """An unplanned contact between ``body_a`` and ``body_b`` (robot links are named ``robot/<link>``) from
+    ``start_s`` to ``end_s`` (seconds on the program's clock: 0 when it starts, negative while the world settles
+    before it), first seen during program step ``step``; ``depth_m``: the deepest penetration seen (metres, 0 for
+    touching)."""
+
+    start_s: float
+    end_s: float
+    step: str
+    body_a: str
+    body_b: str
+    depth_m: float
+
+
+@dataclass(frozen=True)
+class LimitEvent:
+    """The simulated arm beyond a joint limit (times on the program's clock, as :class:`ContactEvent`):
+    ``quantity`` "position" (rad) or "velocity" (rad/s); ``peak`` the farthest value reached, ``limit`` the bound
+    it crossed (signed like ``peak``)."""
+
+    start_s: float
+    end_s: float
+    step: str
+    joint: str
+    quantity: str
+    peak: float
+    limit: float
+
+
+@dataclass(frozen=True)
+class GraspFailure:
+    """The gripper step ``step`` ended at ``time_s`` (program clock) without both fingers touching ``part``;
+    ``fingers_touching`` names those that did."""
+
+    part: str
+    step: str
+    time_s: float
+    fingers_touching: tuple[str, ...]
+
+
+@dataclass
+class SimulationResult:
+    parts: list[PartResult]
+    contacts: list[ContactEvent]
+    limit_violations: list[LimitEvent]
+    grasp_failures: list[GraspFailure]
+    frames: list[np.ndarray]  # (H, W, 3) uint8 RGB every ``record_every_s`` from the program's start, and at the end
+    rate_hz: float
+    simulated_s: float  # the program plus both settling times
+    wall_s: float
+    final_arm_q: tuple[float, ...]  # rad
+    final_opening_m: float  # between the fingers
+    unsettled: list[str] = field(default_factory=list)  # parts that moved while settling at the start
+
+    @property
+    def success(self) -> bool:
+        return (all(p.within_tolerance for p in self.parts) and not self.contacts and not self.limit_violations
+                and not self.grasp_failures)
+
+    def summary(self) -> dict:
+        """Everything measured, as plain JSON types."""
+        return {"success": self.success, "rate_hz": self.rate_hz, "simulated_s": self.simulated_s,
+                "wall_s": self.wall_s, "parts": [p.to_json() for p in self.parts],
+                "grasp_failures": [asdict(g) | {"fingers_touching": list(g.fingers_touching)}
+                                   for g in self.grasp_failures],
+                "unplanned_contacts": [asdict(c) for c in self.contacts],
+                "limit_violations": [asdict(v) for v in self.limit_violations],
+                "unsettled_parts": list(self.unsettled)}
+
+    def failure_words(self) -> str:
+        """One line saying what went wrong (empty on success)."""
+        words = []
+        off = [p for p in self.parts if not p.within_tolerance]
+        if off:
+            words.append(f"{len(off)} part(s) off target (" + ", ".join(
+                f"{p.name}: {p.position_error_m * 1000:.1f} mm, {p.rotation_error_deg:.1f} deg" for p in off[:3])
+                + (", ..." if len(off) > 3 else "") + ")")
+        for g in self.grasp_failures[:3]:
+            touching = " and ".join(g.fingers_touching) or "no finger"
+            words.append(f"grasp of {g.part} failed at '{g.step}' (t = {g.time_s:.2f} s; {touching} touched it)")
+        if self.contacts:
+            c = self.contacts[0]
+            words.append(f"{len(self.contacts)} unplanned contact(s), first {c.body_a} against {c.body_b} at "
+                         f"t = {c.start_s:.2f} s during '{c.step}'")
+        if self.limit_violations:
+            v = self.limit_violations[0]
+            words.append(f"{len(self.limit_violations)} joint limit violation(s), first {v.joint} {v.quantity} "
+                         f"{v.peak:.3f} beyond {v.limit:.3f} at t = {v.start_s:.2f} s during '{v.step}'")
+        return "; ".join(words)
+
+
+# --- building the cell ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _MassProperties:
+    mass_kg: float
+    part_from_com: Pose  # centre of mass, axes along the principal axes of inertia
+    inertia_kg_m2: tuple[float, float, float]  # principal moments
+
+
+def mass_properties(mesh: trimesh.Trimesh, density_kg_m3: float) -> _MassProperties:
+    """Mass, centre of mass and principal inertia of a part of uniform density (its mesh if closed, else the
+    union of its convex pieces)."""
+    solid = mesh if mesh.is_volume else trimesh.util.concatenate(convex_pieces(mesh))
+    solid = solid.copy()
+    solid.density = density_kg_m3
+    moments, axes = np.linalg.eigh(np.asarray(solid.moment_inertia, dtype=np.float64))
+    if np.linalg.det(axes) < 0:
+        axes[:, 0] *= -1.0
+    return _MassProperties(float(solid.mass), Pose.from_rotation(axes, solid.center_mass),
+                           tuple(float(max(m, 1e-9)) for m in moments))
+
+
+def _write_pieces_obj(pieces: Sequence[trimesh.Trimesh], path: Path) -> None:
+    """One OBJ object per convex piece: PyBullet loads such a file as a compound of convex hulls."""
+    lines, offset = [], 1
+    for index, piece in enumerate(pieces):
+        lines.append(f"o piece{index}")
+        lines += [f"v {x:.9f} {y:.9f} {z:.9f}" for x, y, z in piece.vertices]
+        lines += [f"f {a + offset} {b + offset} {c + offset}" for a, b, c in piece.faces]
+        offset += len(piece.vertices)
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _palette(count: int) -> list[tuple[float, float, float, float]]:
+    return [(*colorsys.hsv_to_rgb((0.08 + 0.61803 * k) % 1.0, 0.6, 0.9), 1.0) for k in range(count)]
+
+
+class _Cell:
+    """The cell loaded into one client: the robot, static bodies and parts, with names for every body id."""
+
+    def __init__(self, client: BulletClient, parts: Sequence[SimPart], static_bodies: Sequence[StaticBody],
+                 world_from_robot_base: Pose, settings: SimSettings) -> None:
+        self.pb, self.cid = client.pb, client.client_id
+        self.settings = settings
+        self.panda = Panda(client, world_from_robot_base, settings.urdf)
+        self.robot = self.panda.body
+        self.link_names = {-1: self.pb.getBodyInfo(self.robot, physicsClientId=self.cid)[0].decode()}
+        for j in range(self.pb.getNumJoints(self.robot, physicsClientId=self.cid)):
+            self.link_names[j] = self.pb.getJointInfo(self.robot, j, physicsClientId=self.cid)[12].decode()
+        self._configure_robot()
+        self.names: dict[int, str] = {self.robot: ROBOT}
+        self.static: dict[str, int] = {}
+        self.parts: dict[str, int] = {}
+        self.part_from_com: dict[str, Pose] = {}
+        with tempfile.TemporaryDirectory(prefix="image-assembly-sim-") as folder:
+            for body in static_bodies:
+                self.static[body.name] = self._add_body(Path(folder), body.mesh, body.world_from_body, None,
+                                                        _static_rgba(body.name))
+            for part, rgba in zip(parts, _palette(len(parts))):
+                props = mass_properties(part.mesh, settings.density_kg_m3)
+                self.part_from_com[part.name] = props.part_from_com
+                self.parts[part.name] = self._add_body(Path(folder), part.mesh, part.world_from_start, props, rgba)
+        self.names.update({v: k for k, v in self.static.items()})
+        self.names.update({v: k for k, v in self.parts.items()})
+
+    def _configure_robot(self) -> None:
+        pb, cid = self.pb, self.cid
+        index_of = {name: j for j, name in self.link_names.items()}
+        for name, (mass, inertia) in LINK_DYNAMICS.items():
+            if name in index_of:
+                pb.changeDynamics(self.robot, index_of[name], mass=mass, localInertiaDiagonal=inertia,
+                                  physicsClientId=cid)
+        for pair in ALLOWED_SELF_PAIRS:  # neighbours and pairs whose hulls overlap in every configuration
+            a, b = sorted(pair)
+            if a in index_of and b in index_of:
+                pb.setCollisionFilterPair(self.robot, self.robot, index_of[a], index_of[b], 0, physicsClientId=cid)
+
+    def _add_body(self, folder: Path, mesh: trimesh.Trimesh, world_from_body: Pose, props: _MassProperties | None,
+                  rgba) -> int:
+        pb, cid = self.pb, self.cid
+        path = folder / f"{mesh_key(mesh)}.obj"
+        if not path.exists():
+            _write_pieces_obj(convex_pieces(mesh), path)
+        collision = pb.createCollisionShape(pb.GEOM_MESH, fileName=str(path), physicsClientId=cid)
+        visual_mesh = mesh.copy()
+        visual_mesh.unmerge_vertices()  # flat shading: one normal per face
+        visual = pb.createVisualShape(pb.GEOM_MESH, vertices=visual_mesh.vertices.tolist(),
+                                      indices=visual_mesh.faces.ravel().tolist(),
+                                      normals=np.repeat(visual_mesh.face_normals, 3, axis=0).tolist(),
+                                      rgbaColor=rgba, physicsClientId=cid)
+        if collision < 0 or visual < 0:
+            raise RuntimeError(f"PyBullet refused a mesh of {len(mesh.faces)} faces")
+        position, orientation = world_from_body.to_pybullet()
+        inertial = {}
+        if props is not None:
+            com_position, com_orientation = props.part_from_com.to_pybullet()
+            inertial = {"baseInertialFramePosition": com_position, "baseInertialFrameOrientation": com_orientation}
+        body = pb.createMultiBody(props.mass_kg if props else 0.0, collision, visual, position, orientation,
+                                  physicsClientId=cid, **inertial)
+        dynamics = {"localInertiaDiagonal": props.inertia_kg_m2} if props else {}
+        # no collision margin: PyBullet's default pads convex hulls by about 1 mm each, so stacked parts would float
+        pb.changeDynamics(body, -1, collisionMargin=0.0, lateralFriction=self.settings.friction, physicsClientId=cid,
+                          **dynamics)
+        return body
+
+    # --- state ------------------------------------------------------------------------------------------------------
+    def world_from_part(self, name: str) -> Pose:
+        """The part's mesh frame in the world (PyBullet reports the centre-of-mass frame)."""
+        position, orientation = self.pb.getBasePositionAndOrientation(self.parts[name], physicsClientId=self.cid)
+        return Pose.from_pybullet(position, orientation) @ self.part_from_com[name].inverse()
+
+    def set_part(self, name: str, world_from_part: Pose) -> None:
+        position, orientation = (world_from_part @ self.part_from_com[name]).to_pybullet()
+        self.pb.resetBasePositionAndOrientation(self.parts[name], position, orientation, physicsClientId=self.cid)
+
+    def body_name(self, body: int, link: int) -> str:
+        return f"{ROBOT}/{self.link_names[link]}" if body == self.robot else self.names.get(body, f"body {body}")
+
+    def touching(self, body: int, others: Mapping[str, int], distance_m: float) -> list[str]:
+        """Names of ``others`` within ``distance_m`` of ``body`` (closest points, after the last collision pass)."""
+        return [name for name, other in others.items() if other != body and self.pb.getClosestPoints(
+            body, other, distance_m, physicsClientId=self.cid)]
+
+
+def _static_rgba(name: str) -> tuple[float, float, float, float]:
+    return (0.78, 0.68, 0.55, 1.0) if name == "table" else (0.55, 0.57, 0.62, 1.0)
+
+
+# --- the program's steps ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _StepRole:
+    """What each program step may touch: ``robot_may_touch`` (the part of the pick or place under way, besides
+    the held part); the held part's phases: ``pick_of`` (grasp and lift) and ``place_of`` (last motion and
+    release) name the part concerned."""
+
+    label: str
+    closes: bool = False
+    opens: bool = False
+    robot_may_touch: frozenset[str] = frozenset()
+    pick_of: str | None = None
+    place_of: str | None = None
+
+
+def _step_roles(program: Program) -> list[_StepRole]:
+    steps = program.steps
+    width = program.initial_width_m
+    closes, opens = [False] * len(steps), [False] * len(steps)
+    for index, step in enumerate(steps):
+        if isinstance(step, GripperStep):
+            closes[index], opens[index] = step.width_m < width - 1e-6, step.width_m > width + 1e-6
+            width = step.width_m
+    roles = []
+    for index, step in enumerate(steps):
+        may_touch, pick_of, place_of = set(), None, None
+        before = steps[index - 1] if index > 0 else None
+        after = steps[index + 1] if index + 1 < len(steps) else None
+        if isinstance(step, GripperStep) and step.part:
+            may_touch.add(step.part)
+            pick_of = step.part if closes[index] else None
+            place_of = step.part if opens[index] else None
+        elif isinstance(step, MotionStep):
+            if isinstance(after, GripperStep) and after.part and closes[index + 1]:
+                may_touch.add(after.part)  # the approach
+            if isinstance(before, GripperStep) and before.part and opens[index - 1]:
+                may_touch.add(before.part)  # the retreat
+            if isinstance(before, GripperStep) and before.part and closes[index - 1] and step.part == before.part:
+                pick_of = step.part  # the lift
+            if step.part and isinstance(after, GripperStep) and after.part == step.part and opens[index + 1]:
+                place_of = step.part  # the insertion
+        roles.append(_StepRole(step.label, closes[index], opens[index], frozenset(may_touch), pick_of, place_of))
+    return roles
+
+
+def _check_inputs(program: Program, parts: Sequence[SimPart], static_bodies: Sequence[StaticBody]) -> None:
+    names = [p.name for p in parts]
+    static_names = [s.name for s in static_bodies]
+    for kind, listed in (("part", names), ("static body", static_names)):
+        duplicates = sorted({n for n in listed if listed.count(n) > 1})
+        if duplicates:
+            raise ValueError(f"{kind} names must be unique: {duplicates} appear more than once")
+    clash = sorted(set(names) & (set(static_names) | {FIXTURE, ROBOT}))
+    if clash:
+        raise ValueError(f"part names {clash} are also static bodies or reserved names ({FIXTURE!r}, {ROBOT!r})")
+    for part in parts:
+        unknown = [n for n in part.fasten_to if n != FIXTURE and n not in names]
+        if unknown:
+            raise ValueError(f"part {part.name!r}: fasten_to names {unknown}, which are neither parts nor "
+                             f"{FIXTURE!r}")
+    for step in program.steps:
+        if step.part is not None and step.part not in names:
+            raise ValueError(f"program step {step.label!r} names part {step.part!r}, which is not among the parts "
+                             f"{names}")
+
+
+# --- recording ------------------------------------------------------------------------------------------------------
+class _EventLog:
+    """Merges repeated observations of the same key into events (a gap over :data:`EVENT_GAP_S` starts a new one);
+    each event keeps the fields of its most severe observation."""
+
+    def __init__(self) -> None:
+        self.open: dict[tuple, dict] = {}
+        self.closed: list[dict] = []
+
+    def see(self, key: tuple, time_s: float, step: str, severity: float, **fields) -> None:
+        event = self.open.get(key)
+        if event is not None and time_s - event["end_s"] > EVENT_GAP_S:
+            self.closed.append(self.open.pop(key))
+            event = None
+        if event is None:
+            self.open[key] = {"start_s": time_s, "end_s": time_s, "step": step, "severity": severity, **fields}
+        else:
+            event["end_s"] = time_s
+            if severity > event["severity"]:
+                event.update(severity=severity, **fields)
+
+    def events(self) -> list[dict]:
+        return sorted(self.closed + list(self.open.values()), key=lambda e: e["start_s"])
+
+
+class _Run:
+    """One simulation: the cell, the program's clock and everything recorded."""
+
+    def __init__(self, cell: _Cell, initial_width_m: float, parts: Sequence[SimPart], settings: SimSettings) -> None:
+        self.cell, self.pb, self.cid = cell, cell.pb, cell.cid
+        self.settings = settings
+        self.parts = {p.name: p for p in parts}
+        self.dt = 1.0 / settings.rate_hz
+        self.time_s = -settings.settle_s  # the program's clock: 0 when it starts
+        self.opening_m = initial_width_m
+        self.held: str | None = None
+        self.weld: int | None = None
+        self.grasped: set[str] = set()
+        self.fastened: dict[str, list[str]] = {name: [] for name in self.parts}
+        self.released_at: dict[str, Pose] = {}  # world_from_part when last released
+        self.grasp_failures: list[GraspFailure] = []
+        self.contacts, self.limits = _EventLog(), _EventLog()
+        self.frames: list[np.ndarray] = []
+        self.next_frame_s = 0.0 if settings.record_every_s else np.inf
+        self.start_supports: dict[str, frozenset[str]] = {}
+        self.target_supports = self._target_supports()
+        self.arm_q = np.zeros(7)
+        self.arm_qd = np.zeros(7)
+
+    # --- set-up -----------------------------------------------------------------------------------------------------
+    def _target_supports(self) -> dict[str, frozenset[str]]:
+        """Static bodies each part touches at its target (what "fixture" stands for), found by placing it there."""
+        supports = {}
+        for name, part in self.parts.items():
+            self.cell.set_part(name, part.world_from_target)
+            self.pb.performCollisionDetection(physicsClientId=self.cid)
+            supports[name] = frozenset(self.cell.touching(self.cell.parts[name], self.cell.static,
+                                                          self.settings.fasten_distance_m))
+            self.cell.set_part(name, part.world_from_start)
+        return supports
+
+    def start(self, q0: np.ndarray) -> dict[str, float]:
+        """Robot at ``q0`` with the program's initial opening, parts at their start; settle; returns how far each
+        part's centre moved (metres)."""
+        panda = self.cell.panda
+        panda.set_arm(q0)
+        panda.set_opening(self.opening_m)
+        self._command_fingers(self.opening_m)
+        centres = {n: p.world_from_start.apply(p.mesh.centroid) for n, p in self.parts.items()}
+        self.settle(q0, "settling before the program")
+        self.pb.performCollisionDetection(physicsClientId=self.cid)
+        others = {**self.cell.static, **self.cell.parts}
+        self.start_supports = {name: frozenset(self.cell.touching(self.cell.parts[name], others,
+                                                                  self.settings.fasten_distance_m))
+                               for name in self.parts}
+        return {n: float(np.linalg.norm(self.cell.world_from_part(n).apply(self.parts[n].mesh.centroid) - c))
+                for n, c in centres.items()}
+
+    def settle(self, q: np.ndarray, label: str) -> None:
+        for _ in range(int(round(self.settings.settle_s * self.settings.rate_hz))):
+            self.physics_step(q, np.zeros(7), _StepRole(label))
+
+    # --- stepping ---------------------------------------------------------------------------------------------------
+    def _command_fingers(self, opening_m: float) -> None:
+        half = float(np.clip(opening_m, 0.0, 0.08)) / 2.0
+        for joint in self.cell.panda.fingers:
+            self.pb.setJointMotorControl2(self.cell.robot, joint, self.pb.POSITION_CONTROL, targetPosition=half,
+                                          force=self.settings.finger_force_n,
+                                          maxVelocity=self.settings.finger_speed_m_s, physicsClientId=self.cid)
+
+    def physics_step(self, q_target: np.ndarray, qd_target: np.ndarray, role: _StepRole) -> None:
+        pb, cid, robot = self.pb, self.cid, self.cell.robot
+        pb.setJointMotorControlArray(robot, self.cell.panda.arm, pb.POSITION_CONTROL,
+                                     targetPositions=q_target.tolist(), targetVelocities=qd_target.tolist(),
+                                     forces=ARM_TORQUE_LIMITS_NM, physicsClientId=cid)
+        pb.stepSimulation(physicsClientId=cid)
+        self.time_s += self.dt
+        states = pb.getJointStates(robot, self.cell.panda.arm, physicsClientId=cid)
+        self.arm_q = np.array([s[0] for s in states])
+        self.arm_qd = np.array([s[1] for s in states])
+        self._check_limits(role)
+        self._check_contacts(role)
+        if self.time_s >= self.next_frame_s - 1e-9:
+            self.frames.append(render_frame(self.cell, self.settings.camera))
+            self.next_frame_s += self.settings.record_every_s
+
+    def _check_limits(self, role: _StepRole) -> None:
+        panda, s = self.cell.panda, self.settings
+        q, qd = self.arm_q, self.arm_qd
+        for j in np.flatnonzero((q < panda.lower_limits - s.joint_limit_margin_rad)
+                                | (q > panda.upper_limits + s.joint_limit_margin_rad)):
+            bound = panda.lower_limits[j] if q[j] < panda.lower_limits[j] else panda.upper_limits[j]
+            self.limits.see((j, "position"), self.time_s, role.label, abs(q[j] - bound), joint=ARM_JOINTS[j],
+                            quantity="position", limit=float(bound), peak=float(q[j]))
+        for j in np.flatnonzero(np.abs(qd) > VELOCITY_LIMITS * (1.0 + s.velocity_tolerance)):
+            self.limits.see((j, "velocity"), self.time_s, role.label, abs(qd[j]), joint=ARM_JOINTS[j],
+                            quantity="velocity", limit=float(np.copysign(VELOCITY_LIMITS[j], qd[j])),
+                            peak=float(qd[j]))
+
+    def _held_may_touch(self, role: _StepRole) -> frozenset[str]:
+        allowed = set()
+        if role.pick_of == self.held:
+            allowed |= self.start_supports.get(self.held, frozenset())
+        if role.place_of == self.held:
+            fasten = self.parts[self.held].fasten_to
+            allowed |= {n for n in fasten if n != FIXTURE}
+            if FIXTURE in fasten:
+                allowed |= self.target_supports[self.held]
+        return frozenset(allowed)
+
+    def _check_contacts(self, role: _StepRole) -> None:
+        pb, cid, cell, limit = self.pb, self.cid, self.cell, self.settings.contact_distance_m
+        for point in pb.getContactPoints(bodyA=cell.robot, physicsClientId=cid):
+            other, distance = point[2], point[8]
+            if distance > limit:
+                continue
+            other_name = cell.names.get(other)
+            if other != cell.robot and (other_name == self.held or other_name in role.robot_may_touch):
+                continue
+            names = sorted((cell.body_name(cell.robot, point[3]), cell.body_name(other, point[4])))
+            self.contacts.see(tuple(names), self.time_s, role.label, -distance, body_a=names[0], body_b=names[1])
+        if self.held is None:
+            return
+        held_body, allowed = cell.parts[self.held], self._held_may_touch(role)
+        for point in pb.getContactPoints(bodyA=held_body, physicsClientId=cid):
+            other, distance = point[2], point[8]
+            if distance > limit or other == cell.robot or cell.names.get(other) in allowed:
+                continue
+            name = cell.body_name(other, point[4])
+            self.contacts.see((self.held, name), self.time_s, role.label, -distance, body_a=self.held, body_b=name)
+
+    # --- gripper events ---------------------------------------------------------------------------------------------
+    def enter_gripper_step(self, step: GripperStep, role: _StepRole) -> None:
+        if role.opens and self.held is not None:
+            self._release()
+        if role.closes or role.opens:
+            self._command_fingers(step.width_m)
+        self.opening_m = step.width_m
+
+    def leave_gripper_step(self, step: GripperStep, role: _StepRole) -> None:
+        if not role.closes or step.part is None or self.held is not None:
+            return
+        body = self.cell.parts[step.part]
+        touching = tuple(self.cell.link_names[f] for f in self.cell.panda.fingers
+                         if self.pb.getClosestPoints(self.cell.robot, body, self.settings.grasp_contact_m,
+                                                     linkIndexA=f, physicsClientId=self.cid))
+        if len(touching) < len(self.cell.panda.fingers):
+            self.grasp_failures.append(GraspFailure(step.part, step.label, self.time_s, touching))
+            return
+        pb, cid = self.pb, self.cid
+        hand = pb.getLinkState(self.cell.robot, self.cell.panda.hand_link, computeForwardKinematics=True,
+                               physicsClientId=cid)
+        world_from_hand_com = Pose.from_pybullet(hand[0], hand[1])
+        world_from_part_com = Pose.from_pybullet(*pb.getBasePositionAndOrientation(body, physicsClientId=cid))
+        position, orientation = (world_from_hand_com.inverse() @ world_from_part_com).to_pybullet()
+        self.weld = pb.createConstraint(self.cell.robot, self.cell.panda.hand_link, body, -1, pb.JOINT_FIXED,
+                                        [0, 0, 0], position, [0, 0, 0], orientation, [0, 0, 0, 1],
+                                        physicsClientId=cid)
+        pb.changeConstraint(self.weld, maxForce=_HOLD_FORCE_N, physicsClientId=cid)
+        self.held = step.part
+        self.grasped.add(step.part)
+
+    def _release(self) -> None:
+        """Remove the weld and fasten the released part to what it touches among its ``fasten_to``."""
+        pb, cid, cell = self.pb, self.cid, self.cell
+        pb.removeConstraint(self.weld, physicsClientId=cid)
+        name, self.held, self.weld = self.held, None, None
+        body = cell.parts[name]
+        fasten = self.parts[name].fasten_to
+        pb.performCollisionDetection(physicsClientId=cid)
+        self.released_at[name] = cell.world_from_part(name)
+        world_from_com = Pose.from_pybullet(*pb.getBasePositionAndOrientation(body, physicsClientId=cid))
+        neighbours = {n: cell.parts[n] for n in fasten if n != FIXTURE}
+        for other_name in cell.touching(body, neighbours, self.settings.fasten_distance_m):
+            other = cell.parts[other_name]
+            world_from_other = Pose.from_pybullet(*pb.getBasePositionAndOrientation(other, physicsClientId=cid))
+            position, orientation = (world_from_other.inverse() @ world_from_com).to_pybullet()
+            constraint = pb.createConstraint(other, -1, body, -1, pb.JOINT_FIXED, [0, 0, 0], position, [0, 0, 0],
+                                             orientation, [0, 0, 0, 1], physicsClientId=cid)
+            pb.changeConstraint(constraint, maxForce=_HOLD_FORCE_N, physicsClientId=cid)
+            self.fastened[name].append(other_name)
+        if FIXTURE in fasten and cell.touching(body, cell.static, self.settings.fasten_distance_m):
+            position, orientation = world_from_com.to_pybullet()
+            constraint = pb.createConstraint(body, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0], position,
+                                             [0, 0, 0, 1], orientation, physicsClientId=cid)
+            pb.changeConstraint(constraint, maxForce=_HOLD_FORCE_N, physicsClientId=cid)
+            self.fastened[name].append(FIXTURE)
+
+
+_HOLD_FORCE_N = 5000.0  # welds and fastenings: far above any load in the cell
+
+
+# --- the simulation ---------------------------------------------------------------------------------------------------
+def simulate_program(program: Program, parts: Sequence[SimPart], static_bodies: Sequence[StaticBody],
+                     world_from_robot_base: Pose, settings: SimSettings = SimSettings(),
+                     progress: Callable[[float], None] | None = None) -> SimulationResult:
+    """Run ``program`` with physics in a fresh headless PyBullet client and measure the result (see the module's
+    docstring). ``progress(fraction)`` is called about a hundred times as the program runs, last with 1.0."""
+    _check_inputs(program, parts, static_bodies)
+    started = time.perf_counter()
+    samples = program.sample(settings.rate_hz)
+    q, qd = samples["q"], samples["qd"]
+    durations = [s.timed.duration if isinstance(s, MotionStep) else s.duration_s for s in program.steps]
+    starts = np.concatenate([[0.0], np.cumsum(durations)])
+    step_of = np.clip(np.searchsorted(starts, samples["t"], side="right") - 1, 0, len(program.steps) - 1)
+    roles = _step_roles(program)
+    with BulletClient() as client:
+        pb, cid = client.pb, client.client_id
+        pb.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
+        pb.setTimeStep(1.0 / settings.rate_hz, physicsClientId=cid)
+        cell = _Cell(client, parts, static_bodies, world_from_robot_base, settings)
+        run = _Run(cell, program.initial_width_m, parts, settings)
+        settle_motion = run.start(q[0])
+        count = len(q)
+        report_every = max(1, count // 100)
+        current = None
+        for k in range(count - 1):
+            index = int(step_of[k])
+            if index != current:
+                if current is not None and isinstance(program.steps[current], GripperStep):
+                    run.leave_gripper_step(program.steps[current], roles[current])
+                current = index
+                if isinstance(program.steps[current], GripperStep):
+                    run.enter_gripper_step(program.steps[current], roles[current])
+            run.physics_step(q[k + 1], qd[k + 1], roles[current])
+            if progress is not None and k % report_every == 0:
+                progress(k / count)
+        if current is not None and isinstance(program.steps[current], GripperStep):
+            run.leave_gripper_step(program.steps[current], roles[current])
+        run.settle(q[-1], "settling after the program")
+        if settings.record_every_s:
+            run.frames.append(render_frame(cell, settings.camera))
+        results = _part_results(run, settle_motion)
+        final_q, opening = tuple(float(v) for v in run.arm_q), _opening(cell)
+        simulated_s = run.time_s + settings.settle_s
+    if progress is not None:
+        progress(1.0)
+    contacts = [ContactEvent(e["start_s"], e["end_s"], e["step"], e["body_a"], e["body_b"], max(e["severity"], 0.0))
+                for e in run.contacts.events()]
+    limits = [LimitEvent(e["start_s"], e["end_s"], e["step"], e["joint"], e["quantity"], e["peak"], e["limit"])
+              for e in run.limits.events()]
+    return SimulationResult(results, contacts, limits, run.grasp_failures, run.frames, settings.rate_hz, simulated_s,
+                            time.perf_counter() - started, final_q, opening,
+                            [n for n, m in settle_motion.items() if m > settings.settle_tolerance_m])
+
+
+def _opening(cell: _Cell) -> float:
+    states = cell.pb.getJointStates(cell.robot, cell.panda.fingers, physicsClientId=cell.cid)
+    return float(sum(s[0] for s in states))
+
+
+def _part_results(run: _Run, settle_motion: dict[str, float]) -> list[PartResult]:
+    settings, out, symmetries = run.settings, [], {}
+    for name, part in run.parts.items():
+        final = run.cell.world_from_part(name)
+        key = mesh_key(part.mesh)  # identical parts (legs) share their symmetries
+        symmetry = symmetries[key] = symmetries.get(key) or part_symmetry(part.mesh)
+        position = position_error_m(symmetry, part.world_from_target, final)
+        rotation = rotation_error_deg(symmetry, part.world_from_target, final)
+        released = run.released_at.get(name)
+        moved = None if released is None else float(np.linalg.norm(final.apply(symmetry.centre_m)
+                                                                   - released.apply(symmetry.centre_m)))
+        out.append(PartResult(name, final, position, rotation,
+                              position <= settings.position_tolerance_m and rotation <= settings.rotation_tolerance_deg,
+                              name in run.grasped, tuple(run.fastened[name]), settle_motion[name], moved))
+    return out
+
+
+# --- pictures ---------------------------------------------------------------------------------------------------------
+def render_frame(cell: _Cell, camera: CameraConfig) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of the cell as it is, from ``camera`` (TinyRenderer)."""
+    pb, cid = cell.pb, cell.cid
+    view = pb.computeViewMatrix(list(camera.eye), list(camera.target), [0.0, 0.0, 1.0])
+    projection = pb.computeProjectionMatrixFOV(camera.fov_deg, camera.width_px / camera.height_px, 0.02, 10.0)
+    _, _, rgba, _, _ = pb.getCameraImage(camera.width_px, camera.height_px, viewMatrix=view,
+                                         projectionMatrix=projection, renderer=pb.ER_TINY_RENDERER,
+                                         flags=pb.ER_NO_SEGMENTATION_MASK, physicsClientId=cid)
+    return np.asarray(rgba, dtype=np.uint8).reshape(camera.height_px, camera.width_px, 4)[..., :3].copy()
+
+
+def render_state(parts: Sequence[SimPart], static_bodies: Sequence[StaticBody], world_from_robot_base: Pose,
+                 world_from_part: Mapping[str, Pose], arm_q: Sequence[float], opening_m: float = 0.08,
+                 camera: CameraConfig = DEFAULT_CAMERA, urdf: str = "franka_panda/panda.urdf") -> np.ndarray:
+    """(H, W, 3) uint8 RGB still of the cell with the parts at ``world_from_part`` (parts not named stay at their
+    start), the arm at ``arm_q`` (rad) and the fingers ``opening_m`` apart; no physics."""
+    with BulletClient() as client:
+        cell = _Cell(client, parts, static_bodies, world_from_robot_base, SimSettings(urdf=urdf))
+        for name, pose in world_from_part.items():
+            cell.set_part(name, pose)
+        cell.panda.set_arm(np.asarray(arm_q, dtype=np.float64))
+        cell.panda.set_opening(opening_m)
+        return render_frame(cell, camera)
+
+
+def render_final(result: SimulationResult, parts: Sequence[SimPart], static_bodies: Sequence[StaticBody],
+                 world_from_robot_base: Pose, camera: CameraConfig = DEFAULT_CAMERA) -> np.ndarray:
+    """The final state of a simulation as one still (see :func:`render_state`)."""
+    return render_state(parts, static_bodies, world_from_robot_base,
+                        {p.name: p.world_from_final for p in result.parts}, result.final_arm_q,
+                        result.final_opening_m, camera)
+
+
+def write_gif(frames: Sequence[np.ndarray], path: str | Path, fps: float = 10.0) -> Path:
+    """Write RGB ``frames`` ((H, W, 3) uint8) as an animated GIF playing at ``fps`` and looping; returns the path."""
+    from PIL import Image
+
+    if not frames:
+        raise ValueError("no frames to write: simulate with SimSettings(record_every_s=...)")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    images = [Image.fromarray(np.asarray(f, dtype=np.uint8)) for f in frames]
+    images[0].save(path, save_all=True, append_images=images[1:], duration=int(round(1000.0 / fps)), loop=0,
+                   optimize=True)
+    return path
+
+
+__all__ = ["ContactEvent", "DEFAULT_CAMERA", "FIXTURE", "GraspFailure", "LimitEvent", "PartResult", "SimPart",
+           "SimSettings", "SimulationResult", "StaticBody", "mass_properties", "render_final", "render_state",
+           "simulate_program", "write_gif"]

@@ -1,0 +1,240 @@
+"""Physics simulation of assembly programs (cell/simulate.py) on a hand-made two-part stack, with real PyBullet.
+
+The cell: a table (top at z = 0), a pad under part a's target, a pedestal under each part's start. Part a (a box)
+goes onto the pad; part b (a longer box whose mesh is off its frame's origin) goes on top of a, overhanging a's
+end so far that it topples unless it is fastened to a. The program is built here from IK and straight joint
+segments (top-down grasps), not by the cell's planner.
+"""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+
+from cell.bullet import BulletClient
+from cell.program import GripperStep, MotionStep, Program
+from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS, Panda
+from cell.simulate import FIXTURE, SimPart, SimSettings, StaticBody, render_final, simulate_program, write_gif
+from cell.symmetry import part_symmetry, position_error_m, rotation_error_deg
+from planning.pose import Pose
+from planning.timing import JointLimits, time_path
+
+LIMITS = JointLimits(VELOCITY_LIMITS, ACCELERATION_LIMITS, JERK_LIMITS)
+HOME = np.array([0.0, -0.6, 0.0, -2.2, 0.0, 1.6, 0.785])
+BASE = Pose.identity()
+DOWN = np.array([0.0, 1.0, 0.0, 0.0])  # TCP: approach (z) along world -z, fingers closing along world y
+PAD_TOP_M = 0.12
+A_SIZE, B_SIZE = (0.10, 0.04, 0.04), (0.16, 0.04, 0.03)
+B_MESH_OFFSET = np.array([0.03, 0.0, 0.0])  # b's mesh is not centred on its frame's origin
+OPENING_M, CLOSED_M = 0.05, 0.036  # both parts are 40 mm wide across the fingers
+GRASP_DEPTH_M = 0.012  # TCP below the top face
+
+
+def at(x, y, z):
+    return Pose([x, y, z], [1.0, 0.0, 0.0, 0.0])
+
+
+def box(size, offset=(0.0, 0.0, 0.0)):
+    mesh = trimesh.creation.box(size)
+    mesh.apply_translation(offset)
+    return mesh
+
+
+PARTS = [
+    SimPart("a", box(A_SIZE), at(0.35, 0.3, 0.04 + 0.02), at(0.5, 0.0, PAD_TOP_M + 0.02), (FIXTURE,)),
+    # b's box centre goes to x = 0.57: its centre of mass lies 2 cm beyond a's end (x = 0.55)
+    SimPart("b", box(B_SIZE, B_MESH_OFFSET), at(0.35 - 0.03, -0.3, 0.04 + 0.015),
+            at(0.57 - 0.03, 0.0, PAD_TOP_M + 0.04 + 0.015), ("a",)),
+]
+STATIC = [
+    StaticBody("table", box((1.2, 1.2, 0.05)), at(0.4, 0.0, -0.025)),
+    StaticBody("pad a", box((0.06, 0.03, PAD_TOP_M)), at(0.5, 0.0, PAD_TOP_M / 2)),
+    StaticBody("pedestal a", box((0.06, 0.03, 0.04)), at(0.35, 0.3, 0.02)),
+    StaticBody("pedestal b", box((0.06, 0.03, 0.04)), at(0.35, -0.3, 0.02)),
+]
+
+
+def grasp_tcp(part: SimPart, world_from_part: Pose) -> Pose:
+    """Top-down grasp at the centre of the part's box, ``GRASP_DEPTH_M`` below its top face (world frame)."""
+    low, high = part.mesh.bounds
+    centre = world_from_part.apply(0.5 * (low + high))
+    return Pose(centre + [0.0, 0.0, 0.5 * (high[2] - low[2]) - GRASP_DEPTH_M], DOWN)
+
+
+def raised(pose: Pose, dz: float) -> Pose:
+    return Pose(pose.position + [0.0, 0.0, dz], pose.quat_wxyz)
+
+
+class Arm:
+    """IK in a separate PyBullet client (seeded), for hand-made programs."""
+
+    def __init__(self, panda: Panda) -> None:
+        self.panda, self.rng = panda, np.random.default_rng(0)
+
+    def ik(self, tcp: Pose, seed_q: np.ndarray) -> np.ndarray:
+        return self.panda.inverse_tcp(tcp, self.rng, seed_q=seed_q)
+
+    def vertical(self, tcp: Pose, seed_q: np.ndarray, rise_m: float = 0.1, points: int = 6) -> list[np.ndarray]:
+        """Configurations from ``tcp`` straight up by ``rise_m`` (IK at each point, seeded by the previous one)."""
+        out, q = [], seed_q
+        for dz in np.linspace(0.0, rise_m, points):
+            q = self.ik(raised(tcp, dz), q)
+            out.append(q)
+        return out
+
+
+def timed(*waypoints):
+    return time_path(np.stack(waypoints), LIMITS)
+
+
+@pytest.fixture(scope="module")
+def arm():
+    with BulletClient() as client:
+        yield Arm(Panda(client, BASE))
+
+
+@pytest.fixture(scope="module")
+def stack_program(arm) -> Program:
+    """Pick a, place it on the pad, release; pick b, place it on a, release; home."""
+    steps, q = [], HOME
+    for part in PARTS:
+        n = part.name
+        pick = arm.vertical(grasp_tcp(part, part.world_from_start), q)
+        place = arm.vertical(grasp_tcp(part, part.world_from_target), pick[-1])
+        steps += [MotionStep(f"{n}: move to the pick", timed(q, pick[-1])),
+                  MotionStep(f"{n}: approach", timed(*pick[::-1])),
+                  GripperStep(f"{n}: close", CLOSED_M, n),
+                  MotionStep(f"{n}: lift", timed(*pick), n),
+                  MotionStep(f"{n}: move to the target", timed(pick[-1], place[-1]), n),
+                  MotionStep(f"{n}: insert", timed(*place[::-1]), n),
+                  GripperStep(f"{n}: open", OPENING_M, n),
+                  MotionStep(f"{n}: retreat", timed(*place))]
+        q = place[-1]
+    steps.append(MotionStep("return home", timed(q, HOME)))
+    return Program(steps, initial_width_m=OPENING_M)
+
+
+@pytest.fixture(scope="module")
+def stack_result(stack_program):
+    return simulate_program(stack_program, PARTS, STATIC, BASE, SimSettings(record_every_s=0.5))
+
+
+def test_stack_is_assembled_within_tolerance(stack_result):
+    result = stack_result
+    assert result.success, result.failure_words()
+    assert result.failure_words() == ""
+    for part in result.parts:
+        assert part.position_error_m < 0.005 and part.rotation_error_deg < 3.0, part
+        assert part.grasped
+        assert part.settle_motion_m < 0.001  # the start poses are at rest
+    by_name = {p.name: p for p in result.parts}
+    assert by_name["a"].fastened_to == (FIXTURE,) and by_name["b"].fastened_to == ("a",)
+    assert not result.contacts and not result.limit_violations and not result.grasp_failures
+    summary = json.loads(json.dumps(result.summary(), allow_nan=False))  # plain JSON types only
+    assert summary["success"] is True and [p["name"] for p in summary["parts"]] == ["a", "b"]
+
+
+def test_fastened_parts_stay_put(stack_result):
+    for part in stack_result.parts:
+        assert part.moved_after_release_m is not None and part.moved_after_release_m < 0.001, part
+
+
+def test_unfastened_overhang_topples(stack_program):
+    """Without its fastening b's overhang tips it off a: the fastening is what keeps it, and the check sees it."""
+    parts = [PARTS[0], replace(PARTS[1], fasten_to=())]
+    result = simulate_program(stack_program, parts, STATIC, BASE)
+    b = {p.name: p for p in result.parts}["b"]
+    assert b.fastened_to == () and not b.within_tolerance and b.position_error_m > 0.02
+    assert not result.success and "b:" in result.failure_words()
+
+
+def test_frames_gif_and_final_still(stack_result, tmp_path):
+    frames = stack_result.frames
+    assert len(frames) >= 10 and frames[0].shape == (240, 320, 3) and frames[0].dtype == np.uint8
+    path = write_gif(frames, tmp_path / "animation.gif")
+    with Image.open(path) as gif:
+        assert gif.n_frames == len(frames) and gif.size == (320, 240)
+    still = render_final(stack_result, PARTS, STATIC, BASE)
+    assert still.shape == (240, 320, 3) and still.std() > 10  # not a blank picture
+    assert np.abs(still.astype(int) - frames[-1].astype(int)).mean() < 5  # the last frame shows the same state
+
+
+def test_closing_on_nothing_does_not_weld(arm):
+    part = PARTS[0]
+    high = arm.vertical(raised(grasp_tcp(part, part.world_from_start), 0.06), HOME, rise_m=0.06, points=2)
+    program = Program([MotionStep("a: move to the pick", timed(HOME, high[-1])),
+                       MotionStep("a: approach", timed(high[-1], high[0])),
+                       GripperStep("a: close", CLOSED_M, "a"),
+                       MotionStep("a: lift", timed(high[0], high[-1]), "a"),
+                       GripperStep("a: open", OPENING_M, "a")], initial_width_m=OPENING_M)
+    result = simulate_program(program, PARTS, STATIC, BASE)
+    assert [(g.part, g.step, g.fingers_touching) for g in result.grasp_failures] == [("a", "a: close", ())]
+    a = {p.name: p for p in result.parts}["a"]
+    assert not a.grasped and a.fastened_to == ()
+    dp, da = a.world_from_final.distance(part.world_from_start)
+    assert dp < 0.001 and np.degrees(da) < 0.5  # it stayed where it was
+    assert not result.success and "grasp of a failed at 'a: close'" in result.failure_words()
+
+
+def test_hand_driven_into_the_table_is_an_unplanned_contact(arm):
+    below = arm.ik(Pose([0.6, 0.2, -0.03], DOWN), HOME)  # the TCP 3 cm under the table top
+    program = Program([MotionStep("into the table", timed(HOME, below)), MotionStep("back", timed(below, HOME))])
+    result = simulate_program(program, PARTS, STATIC, BASE, SimSettings(settle_s=0.1))
+    hits = [c for c in result.contacts if "table" in (c.body_a, c.body_b)]
+    assert hits and all(c.step == "into the table" for c in hits)
+    assert {c.body_a for c in hits} <= {"robot/panda_leftfinger", "robot/panda_rightfinger", "robot/panda_hand"}
+    assert max(c.depth_m for c in hits) > 0.001 and 0.0 < hits[0].start_s < hits[0].end_s
+    assert not result.success and "unplanned contact" in result.failure_words()
+
+
+def test_a_program_beyond_the_velocity_limits_is_reported(arm):
+    fast = JointLimits(1.6 * VELOCITY_LIMITS, ACCELERATION_LIMITS, JERK_LIMITS)
+    far = HOME + np.array([1.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    program = Program([MotionStep("swing", time_path(np.stack([HOME, far]), fast))])
+    result = simulate_program(program, PARTS, STATIC, BASE, SimSettings(settle_s=0.1))
+    swing = [v for v in result.limit_violations if v.joint == "panda_joint1" and v.quantity == "velocity"]
+    assert swing and swing[0].step == "swing" and abs(swing[0].peak) > 1.5 * VELOCITY_LIMITS[0]
+    assert not result.success
+
+
+def test_rotation_error_modulo_symmetry():
+    target = Pose([0.5, 0.1, 0.2], [0.9, 0.1, -0.2, 0.3])
+
+    def error(mesh, axis, degrees, symmetry=None):
+        """(rotation error, position error) of the part turned about ``axis`` (part frame) through its centre."""
+        symmetry = symmetry or part_symmetry(mesh)
+        half = np.radians(degrees) / 2.0
+        turn = Pose([0.0, 0.0, 0.0], [np.cos(half), *(np.sin(half) * np.asarray(axis, dtype=float))])
+        centre = symmetry.centre_m
+        actual = target @ Pose(centre, [1, 0, 0, 0]) @ turn @ Pose(-centre, [1, 0, 0, 0])
+        return rotation_error_deg(symmetry, target, actual), position_error_m(symmetry, target, actual)
+
+    board = box((0.2, 0.05, 0.03), offset=(0.1, 0.02, 0.0))  # elongated, off its frame's origin
+    symmetry = part_symmetry(board)
+    assert len(symmetry.rotations) == 4 and not symmetry.axes  # identity and three half turns
+    for axis in ([1, 0, 0], [0, 1, 0], [0, 0, 1]):
+        rotation, position = error(board, axis, 180.0, symmetry)
+        assert rotation == pytest.approx(0.0, abs=0.05) and position == pytest.approx(0.0, abs=1e-9)
+    assert error(board, [0, 0, 1], 90.0, symmetry)[0] == pytest.approx(90.0, abs=0.05)
+    assert error(board, [0, 0, 1], 5.0, symmetry)[0] == pytest.approx(5.0, abs=0.05)
+    knob = box((0.02, 0.02, 0.02), offset=(0.09, 0.0, 0.025))  # a knob on one end breaks every symmetry
+    assert error(trimesh.util.concatenate([box((0.2, 0.05, 0.03)), knob]), [1, 0, 0], 180.0)[0] == pytest.approx(
+        180.0, abs=0.05)
+    rod = trimesh.creation.cylinder(radius=0.02, height=0.3, sections=64)  # a solid of revolution about z
+    symmetry = part_symmetry(rod)
+    assert len(symmetry.axes) == 1 and abs(symmetry.axes[0][2]) == pytest.approx(1.0)
+    assert error(rod, [0, 0, 1], 37.0, symmetry)[0] == pytest.approx(0.0, abs=0.05)
+    assert error(rod, [1, 0, 0], 180.0, symmetry)[0] == pytest.approx(0.0, abs=0.05)
+    assert error(rod, [1, 0, 0], 20.0, symmetry)[0] == pytest.approx(20.0, abs=0.05)
+
+
+def test_bad_inputs_are_named(stack_program):
+    with pytest.raises(ValueError, match="rate_hz must be at least 240"):
+        SimSettings(rate_hz=100.0)
+    with pytest.raises(ValueError, match="'a: close' names part 'a', which is not among the parts"):
+        simulate_program(stack_program, [replace(PARTS[1], fasten_to=())], STATIC, BASE)
+    with pytest.raises(ValueError, match=r"part 'b': fasten_to names \['seat'\]"):
+        simulate_program(stack_program, [PARTS[0], replace(PARTS[1], fasten_to=("seat",))], STATIC, BASE)
