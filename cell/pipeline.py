@@ -12,9 +12,9 @@ import argparse
 
 import numpy as np
 
+from cell.errors import EXIT_OK, EXIT_PLANNING, EXIT_SIMULATION, BadInput, StageFailed
 from cell.inputs import Parts
 from cell.report import assembly_with_poses, pose_json
-from cell.run import EXIT_OK, EXIT_PLANNING, EXIT_SIMULATION, BadInput, Console, StageFailed
 from cell.scene import Scene
 from planning.assembly import Assembly, AssemblyPart
 from planning.pose import Pose
@@ -24,7 +24,7 @@ REPAIR_GIVEN_POSES = False  # given (--poses) targets are taken as they are; pre
 
 class Pipeline:
     def __init__(self, scene: Scene, parts: Parts, image: np.ndarray | None, given: dict[str, Pose] | None,
-                 args: argparse.Namespace, console: Console, report: dict) -> None:
+                 args: argparse.Namespace, console, report: dict) -> None:
         self.scene, self.parts, self.image, self.given = scene, parts, image, given
         self.args, self.console, self.report = args, console, report
         self.target: Assembly | None = None
@@ -126,12 +126,16 @@ class Pipeline:
                                   motion=MotionSettings(planner=self.args.planner, seed=self.args.seed),
                                   progress=progress, on_stage=on_stage)
         except PlanningFailed as exc:
+            self.console.stage_seconds.update(exc.seconds)
             raise StageFailed(EXIT_PLANNING, exc.stage, str(exc), exc.part) from exc
         finally:
             bar.close()
-            if self.plan is not None:
-                for name in ("kitting", "motion", "timing"):
-                    self.console.stage_seconds[name] = self.plan.seconds[name]
+        for name in ("kitting", "motion", "timing"):
+            self.console.stage_seconds[name] = self.plan.seconds.get(name, 0.0)
+        self.report["world_from_assembly"] = pose_json(self.plan.world_from_assembly)
+        self.report["jig_turn_deg"] = self.plan.jig_turn_deg
+        for task in self.plan.tasks:
+            self.entries[task.part]["target_world_from_part"] = pose_json(task.world_from_target)
         for slot in self.plan.slots:
             self.entries[slot.part]["kitting_world_from_part"] = pose_json(slot.world_from_part)
             self.entries[slot.part]["grasp"] = {"part_from_tcp": pose_json(slot.grasp.part_from_tcp),
@@ -193,7 +197,7 @@ class Pipeline:
         if self.target is not None:
             final = None
             if self.simulation is not None:
-                assembly_from_world = self.scene.fixture.world_from_assembly.inverse()
+                assembly_from_world = self.plan.world_from_assembly.inverse()
                 final = assembly_with_poses(self.target, {p.name: assembly_from_world @ p.world_from_final
                                                           for p in self.simulation.parts})
             Image.fromarray(overview_image(self.image, self.target, final, seed=self.args.seed)).save(

@@ -8,6 +8,7 @@ the floor.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -16,8 +17,8 @@ import trimesh
 
 from cell.bullet import BulletClient
 from cell.robot import IKError, IKSettings, Panda
-from cell.scene import Scene
-from cell.task import APPROACH_M, INSERTION_M, CellWorld, PartTask, TaskPlan, TaskPlanningError, plan_tasks
+from cell.scene import FixtureConfig, Scene
+from cell.task import APPROACH_M, INSERTION_M, LIFT_M, CellWorld, PartTask, TaskPlan, TaskPlanningError, plan_tasks
 from planning.assembly import Assembly
 from planning.collision import ConvexPart
 from planning.disassembly import SequenceResult
@@ -40,6 +41,7 @@ class PlanningFailed(RuntimeError):
     def __init__(self, stage: str, message: str, part: str | None = None) -> None:
         super().__init__(message)
         self.stage, self.part = stage, part
+        self.seconds: dict[str, float] = {}  # time spent before failing, per stage
 
 
 @dataclass
@@ -58,6 +60,7 @@ class CellPlan:
     task_plan: TaskPlan
     joint_limits: tuple[np.ndarray, np.ndarray]  # lower, upper (rad), from the robot's URDF
     seconds: dict[str, float] = field(default_factory=dict)
+    jig_turn_deg: float = 0.0  # how far the jig was turned from the scene's pose to make the plan work
 
     @property
     def program(self):
@@ -121,6 +124,7 @@ class _KitReach(Reach):
         table = _table(scene)
         self.table = {"table": (ConvexPart.from_mesh("table", table.mesh), table.world_from_obstacle.matrix())}
         self.settings = IKSettings(restarts=4)
+        self.shoulder = scene.robot.world_from_base.apply(np.array([[0.0, 0.0, SHOULDER_HEIGHT_M]]))[0]
         self.at_target_cache: dict[tuple[str, int], tuple | None] = {}
 
     def _world(self, kit: list[tuple[trimesh.Trimesh, Pose]], jig_parts: list[str]) -> dict:
@@ -133,6 +137,8 @@ class _KitReach(Reach):
 
     def _chain(self, poses: list[Pose], seed: np.ndarray | None, checks: list[frozenset[str]]):
         """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its set, or None."""
+        if not all(self._within_reach(pose) for pose in poses):
+            return None
         for attempt in range(3):
             configurations, previous = [], seed if attempt == 0 else None
             try:
@@ -145,6 +151,12 @@ class _KitReach(Reach):
             if all(self.checker.is_valid(q, ignore=ignore) for q, ignore in zip(configurations, checks)):
                 return configurations
         return None
+
+    def _within_reach(self, world_from_tcp: Pose) -> bool:
+        """A quick necessary condition before inverse kinematics: the flange (the hand's length back from the
+        TCP along the approach) lies within the arm's reach of the shoulder."""
+        flange = world_from_tcp.position - world_from_tcp.rotation[:, 2] * HAND_LENGTH_M
+        return float(np.linalg.norm(flange - self.shoulder)) <= PANDA_REACH_M
 
     def at_target(self, part: str, grasp: Grasp) -> tuple | None:
         key = (part, id(grasp))
@@ -165,9 +177,10 @@ class _KitReach(Reach):
             return None
         tcp = world_from_part @ grasp.part_from_tcp
         pre = Pose(tcp.position - tcp.rotation[:, 2] * APPROACH_M, tcp.quat_wxyz)
+        lifted = Pose(tcp.position + np.array([0.0, 0.0, LIFT_M]), tcp.quat_wxyz)
         self.checker.set_obstacles(self._world(list(obstacles), self.order[:self.order.index(part)]))
         self.checker.hold(None, opening_m=grasp.opening_m)
-        found = self._chain([tcp, pre], self.home_q, [frozenset(), frozenset()])
+        found = self._chain([tcp, pre, lifted], self.home_q, [frozenset()] * 3)
         return None if found is None else (tuple(found), target, grasp.opening_m)
 
     def still_clear(self, reach, obstacles) -> bool:
@@ -176,15 +189,62 @@ class _KitReach(Reach):
         return all(self.checker.is_valid(q) for q in reach[0] + reach[1])
 
 
+JIG_TURNS_DEG = (0.0, 90.0, 270.0, 180.0)
+DEFAULT_TIME_BUDGET_S = 180.0  # the jig is turned about +z until the parts can be kitted and placed
+
+
+def jig_turned(scene: Scene, turn_deg: float) -> Scene:
+    """``scene`` with its jig (the assembly frame) turned by ``turn_deg`` about the world's +z axis."""
+    half = np.radians(turn_deg) / 2
+    pose = scene.fixture.world_from_assembly
+    turned = Pose(pose.position, [np.cos(half), 0.0, 0.0, np.sin(half)]) @ Pose([0, 0, 0], pose.quat_wxyz)
+    return dataclasses.replace(scene, fixture=FixtureConfig(turned))
+
+
 def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int = 0,
-              motion: MotionSettings | None = None, progress=None, on_stage=None) -> CellPlan:
+              motion: MotionSettings | None = None, progress=None, on_stage=None,
+              time_budget_s: float = DEFAULT_TIME_BUDGET_S) -> CellPlan:
     """Kitting layout, pick-and-place tasks and the timed program for ``assembly`` in ``scene``; raises
     :class:`PlanningFailed` naming the stage and the part. ``on_stage(name)`` is called as the kitting and the
     motion stages begin; ``progress(fraction)`` after each part's motions are planned. ``CellPlan.seconds``
-    holds the time of kitting, motion (OMPL, IK, checks) and timing (Ruckig, with its collision re-check)."""
-    on_stage = on_stage or (lambda name: None)
+    holds the time of kitting, motion (OMPL, IK, checks) and timing (Ruckig, with its collision re-check).
+
+    Where kitting or motion fail with the jig as the scene places it, the jig is turned by 90, 270 and 180
+    degrees (an assembly's grasps may only be reachable from one side); ``CellPlan.world_from_assembly`` says
+    where it ended up, and a failure names every turn tried. Planning gives up after ``time_budget_s``."""
     if not sequence.success:
         raise PlanningFailed("sequence", f"no assembly sequence: {sequence.reason}")
+    failures = []
+    spent: dict[str, float] = {}
+    deadline = time.perf_counter() + time_budget_s
+    for turn in JIG_TURNS_DEG:
+        if failures and time.perf_counter() > deadline:
+            break
+        try:
+            plan = _plan_with_jig(jig_turned(scene, turn), assembly, sequence, seed, motion, progress, on_stage,
+                                  deadline)
+        except PlanningFailed as exc:
+            failures.append((turn, exc))
+            for name, value in getattr(exc, "seconds", {}).items():
+                spent[name] = spent.get(name, 0.0) + value
+            if exc.stage == "kitting" and "too large for this cell" in str(exc):
+                break  # no turn makes the kitting ring larger
+            continue
+        for name, value in spent.items():
+            plan.seconds[name] = plan.seconds.get(name, 0.0) + value
+        plan.jig_turn_deg = turn
+        return plan
+    first_turn, first = failures[0]
+    tried = "; ".join(f"turned {turn:.0f} deg: {exc}" for turn, exc in failures[1:])
+    message = str(first) + (f" (also tried the jig {tried})" if tried else "")
+    error = PlanningFailed(first.stage, message, first.part)
+    error.seconds = spent
+    raise error
+
+
+def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int,
+                   motion: MotionSettings | None, progress, on_stage, deadline: float) -> CellPlan:
+    on_stage = on_stage or (lambda name: None)
     seconds: dict[str, float] = {}
     world_from_assembly = scene.fixture.world_from_assembly
     home_q = np.array(scene.robot.home_q)
@@ -229,16 +289,18 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
             slots = plan_kitting(order, [assembly.part(n).mesh for n in order], ranked, ok_at_target,
                                  _kitting_area(scene, assembly),
                                  prefer_near_xy=world_from_assembly.position[:2],
-                                 reach=kit_reach)
+                                 reach=kit_reach, deadline=deadline)
         except KittingError as exc:
-            raise PlanningFailed("kitting", str(exc)) from exc
+            error = PlanningFailed("kitting", str(exc))
+            error.seconds = {"kitting": time.perf_counter() - started}
+            raise error from exc
         seconds["kitting"] = time.perf_counter() - started
 
         # --- pick and place -------------------------------------------------------------------------------------
         on_stage("motion")
         started = time.perf_counter()
         static += [StaticObstacle(f"pedestal {s.part}", s.pedestal.mesh(), s.pedestal.world_from_pedestal)
-                   for s in slots]
+                   for s in slots if s.pedestal is not None]
         convex_static = {o.name: (ConvexPart.from_mesh(o.name, o.mesh), o.world_from_obstacle) for o in static}
         convex_parts = {p.name: ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts}
         tasks = []
@@ -246,13 +308,15 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
             step = steps[slot.part]
             tasks.append(PartTask(slot.part, slot.world_from_part, targets[slot.part], slot.grasp,
                                   np.asarray(step.insertion_direction, dtype=np.float64), touches[slot.part],
-                                  f"pedestal {slot.part}", slot.reach[0][0], slot.reach[1][0]))
+                                  slot.rests_on or f"pedestal {slot.part}", slot.reach[0][0], slot.reach[1][0]))
         world = CellWorld(panda, scene.robot.world_from_base, convex_static, convex_parts,
                           np.random.default_rng([seed, 2]), motion or MotionSettings())
         try:
-            task_plan = plan_tasks(world, tasks, home_q, progress=progress)
+            task_plan = plan_tasks(world, tasks, home_q, progress=progress, deadline=deadline)
         except TaskPlanningError as exc:
-            raise PlanningFailed("motion", str(exc), exc.part) from exc
+            error = PlanningFailed("motion", str(exc), exc.part)
+            error.seconds = {**seconds, "motion": time.perf_counter() - started, "timing": world.timing_seconds}
+            raise error from exc
         seconds["timing"] = world.timing_seconds
         seconds["motion"] = time.perf_counter() - started - world.timing_seconds
         limits = (panda.lower_limits.copy(), panda.upper_limits.copy())

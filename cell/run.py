@@ -26,22 +26,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
+from cell.errors import EXIT_BAD_INPUT, EXIT_INTERNAL, EXIT_OK, EXIT_PLANNING, EXIT_SIMULATION, BadInput, StageFailed
 
-EXIT_OK, EXIT_BAD_INPUT, EXIT_PLANNING, EXIT_SIMULATION, EXIT_INTERNAL = 0, 2, 3, 4, 1
 STAGES = ("perception", "repair", "sequence", "kitting", "motion", "timing", "simulation", "export")
-
-
-class BadInput(Exception):
-    """Exit 2: the message names the culprit."""
-
-
-class StageFailed(Exception):
-    """Exit 3 or 4 after a stage ran and failed; the report is still written."""
-
-    def __init__(self, exit_code: int, stage: str, message: str, part: str | None = None) -> None:
-        super().__init__(message)
-        self.exit_code, self.stage, self.part = exit_code, stage, part
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -185,4 +172,4 @@ if __name__ == "__main__":
     sys.exit(main())
 
 
-__all__ = ["main", "BadInput", "StageFailed", "np"]
+__all__ = ["main", "Console", "STAGES"]

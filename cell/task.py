@@ -72,7 +72,7 @@ class PartTask:
     grasp: Grasp  # part frame
     insertion_direction: np.ndarray  # unit, world: the part's motion during insertion
     touches_at_target: tuple[str, ...]  # obstacles it may touch when it arrives (neighbours, its pads)
-    pedestal: str  # the obstacle it rests on at the pick
+    pedestal: str  # the obstacle it rests on at the pick (its pedestal, or the board it lies on)
     pick_q_hint: np.ndarray | None = None  # an arm configuration known to reach the grasp (from kitting)
     place_q_hint: np.ndarray | None = None  # ... and the release at the target
 
@@ -164,7 +164,7 @@ class CellWorld:
         keeping the orientation: IK every :data:`CARTESIAN_STEP_M`, each seeded from the previous point."""
         distance = float(np.linalg.norm(offset_world))
         steps = max(1, int(np.ceil(distance / CARTESIAN_STEP_M)))
-        settings = IKSettings(restarts=1)
+        settings = IKSettings(restarts=1, refinements=24, iterations=200)
         path = [np.asarray(q_contact, dtype=np.float64)]
         for k in range(1, steps + 1):
             target = Pose(world_from_tcp_contact.position + offset_world * (k / steps),
@@ -223,11 +223,11 @@ def _drop_repeats(path: np.ndarray) -> np.ndarray:
 
 
 def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
-               progress=None) -> TaskPlan:
+               progress=None, deadline: float = float("inf")) -> TaskPlan:
     """The whole program: every part of ``tasks`` picked and placed in order, then home.
 
     ``world`` must hold every part at its pick pose on entry (``set_part_poses``); ``progress(fraction)`` is
-    called after each part.
+    called after each part; past ``deadline`` (``time.perf_counter()``) it gives up.
     """
     program = Program(initial_width_m=tasks[0].grasp.opening_m if tasks else 0.08)
     plan = TaskPlan(program)
@@ -241,6 +241,8 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
     opening = program.initial_width_m
     for index, task in enumerate(tasks):
         name, grasp = task.part, task.grasp
+        if time.perf_counter() > deadline:
+            raise TaskPlanningError("timeout", name, "planning", "the planning time budget ran out")
         # --- pick ------------------------------------------------------------------------------------------
         world.hold(None, None, opening)
         tcp_pick = task.world_from_pick @ grasp.part_from_tcp

@@ -9,18 +9,24 @@ The kitting area is a ring around the robot base on the table (:class:`KittingAr
 (the jig with the assembly growing on it, plus room for the hand). Each part's footprint is a rectangle turned
 so that its long side runs along the ring (tangential). Candidate places are tried nearest to the jig first.
 
+Boards may lie on boards (a stack): a board rests on a flat board assembled after it (so it is picked first),
+overhanging it by :data:`STACK_OVERHANG_M` on one side so that the fingers reach under its edge there. Stacks
+let a cabinet's panels fit the ring within the arm's reach.
+
 For each part the planner takes the most probable stable pose and the first place where
 
 - the footprint, grown by the gap, overlaps no other part's and no keep-out rectangle and lies on the table;
-- some grasp works at the pick, clear of its pedestal, the table and the neighbouring parts and pedestals, and
-  the same grasp works at the target (``grasp_ok_at_target``) and the robot reaches it (``reachable``);
-- the grasps already chosen for the neighbours stay clear of the new part.
+- some grasp works at the pick, clear of its support, the table and the neighbouring pedestals and the parts
+  still there when it is picked (those assembled after it), and the same grasp works at the target
+  (``grasp_ok_at_target``) and the robot reaches it (``reach``);
+- the grasps chosen for the parts picked before it stay clear of it (and of its pedestal).
 
 Frames: every pose is in the world frame of the cell (metres, +z up, table top at ``table_z_m``).
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -34,7 +40,13 @@ from planning.pose import Pose
 NEIGHBOUR_REACH_M = 0.25  # parts whose footprints are farther apart than this cannot touch each other's hand
 MAX_PLACES_PER_POSE = 40  # places tried (with grasp checks) for one stable pose before the next pose
 RADIAL_STEP_M = 0.03
+BOARD_THICKNESS_RATIO = 0.25  # a part thinner than this fraction of its middle extent is a board: it may stack
+STACK_OVERHANG_M = 0.04  # a stacked board overhangs the one under it by this much on one side (for the fingers)
+STACK_SUPPORT_M = 0.02  # ... and keeps its centre at least this far inside the lower board's edge
+TOP_FACE_FRACTION = 0.8  # a board's flat top covers at least this fraction of its footprint
 CAPACITY_FRACTION = 0.75  # rectangles in a ring pack no denser than this: fail at once above it
+COMFORTABLE_FRACTION = 0.6  # places beyond this fraction of the ring's depth are tried last ...
+FAR_PENALTY = 3.0  # ... as if each metre beyond it were this many metres farther from the jig
 ANGLE_STEP_DEG = 3.0
 
 
@@ -53,11 +65,12 @@ class KittingSlot:
 
     part: str
     world_from_part: Pose
-    pedestal: Pedestal
+    pedestal: Pedestal | None  # None when it lies on another part (``rests_on``)
     grasp: Grasp
     stable_pose_probability: float
     footprint_world: np.ndarray  # (4, 2) corners of the footprint rectangle, world x-y, metres
     reach: object = None  # what ``Reach.at_pick`` returned (e.g. the arm configurations), for ``still_clear``
+    rests_on: str | None = None  # the board it lies on (picked after it); None: on its own pedestal
 
 
 class Reach:
@@ -170,7 +183,10 @@ def candidate_places(area: KittingArea, half_xy: np.ndarray,
                 if any(_polygons_overlap(grown, _box_corners(k_lo, k_hi)) for k_lo, k_hi in area.keep_out):
                     continue
                 places.append((xy, float(long_yaw)))
-    places.sort(key=lambda p: float(np.linalg.norm(p[0] - prefer_near_xy)))
+    # near the jig, but not at the edge of the reach, where arm configurations are awkward
+    comfortable = area.inner_radius_m + COMFORTABLE_FRACTION * (area.outer_radius_m - area.inner_radius_m)
+    places.sort(key=lambda p: float(np.linalg.norm(p[0] - prefer_near_xy))
+                + FAR_PENALTY * max(0.0, float(np.linalg.norm(p[0] - centre)) - comfortable))
     return places
 
 
@@ -200,113 +216,236 @@ def ring_area_m2(area: KittingArea, cell_m: float = 0.01) -> float:
 
 def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: dict[str, list[Grasp]],
                  grasp_ok_at_target: Callable[[str, Grasp], bool], area: KittingArea,
-                 prefer_near_xy: Sequence[float] = (0.5, 0.0), reach: Reach | None = None) -> list[KittingSlot]:
+                 prefer_near_xy: Sequence[float] = (0.5, 0.0), reach: Reach | None = None,
+                 deadline: float = float("inf")) -> list[KittingSlot]:
     """A slot for every part (returned in the order given), the largest footprints laid out first, each in the
-    free place nearest ``prefer_near_xy`` (usually the jig). Each part's ``candidates`` are tried in the order
-    given (rank them for the target: the pick is usually the easier end).
+    free place nearest ``prefer_near_xy`` (usually the jig). ``names`` must be in assembly order: a part is
+    only an obstacle to the picks of parts assembled before it (the others are gone by then), and a board may
+    lie on a board assembled after it (:func:`stack_places`). Each part's ``candidates`` are tried in the
+    order given (rank them for the target: the pick is usually the easier end).
 
     ``grasp_ok_at_target(part, grasp)`` says whether a grasp (part frame) also works where the part is placed;
-    ``reach`` whether the robot's arm reaches it at the pick among the parts already laid out (and keeps
-    reaching the earlier parts once the new one lies next to them).
+    ``reach`` whether the robot's arm reaches it at the pick among the parts present then (and keeps reaching
+    the earlier parts once the new one lies next to them). Past ``deadline`` (``time.perf_counter()``) it
+    gives up.
     """
     reach = reach or Reach()
-    slots: list[KittingSlot] = []
-    placed_meshes: dict[str, trimesh.Trimesh] = {}
-    prefer = np.asarray(prefer_near_xy, dtype=np.float64)
-    needed, offered = footprint_area_m2(meshes, area.gap_m), ring_area_m2(area)
+    layout = _Layout(names, dict(zip(names, meshes)), area, np.asarray(prefer_near_xy, dtype=np.float64), reach)
+    needed, offered = footprint_area_m2([m for m in meshes if not _is_board(m)], area.gap_m), ring_area_m2(area)
+    boards = [m for m in meshes if _is_board(m)]
+    needed += footprint_area_m2(sorted(boards, key=lambda m: -np.prod(np.sort(m.extents)[1:]))[:1], area.gap_m)
     if needed > CAPACITY_FRACTION * offered:
-        raise KittingError(f"the parts need about {needed:.2f} m2 of kitting area lying on their largest faces "
-                           f"(gaps included), the kitting ring offers {offered:.2f} m2 within reach on the table: "
+        raise KittingError(f"the parts need at least {needed:.2f} m2 of kitting area (boards stacked, gaps "
+                           f"included), the kitting ring offers {offered:.2f} m2 within reach on the table: "
                            "the object is too large for this cell (use a scaled-down model of it, or a scene "
                            "with a larger kitting area)")
-    # largest footprints first (they need the roomy places), ties in the order given
+    # largest footprints first (they need the roomy places, and boards are stacked on them), ties in order
     area_of = {name: float(np.prod(np.sort(mesh.extents)[1:])) for name, mesh in zip(names, meshes)}
     by_size = sorted(range(len(names)), key=lambda k: (-round(area_of[names[k]], 4), k))
     for name, mesh in ((names[k], meshes[k]) for k in by_size):
-        chosen = _place_one(name, mesh, candidates[name], grasp_ok_at_target, area, prefer, reach, slots,
-                            placed_meshes)
+        if time.perf_counter() > deadline:
+            raise KittingError(f"part {name!r}: the planning time budget ran out while laying out the kit")
+        chosen = layout.place(name, candidates[name], grasp_ok_at_target)
         if chosen is None:
-            raise KittingError(_why_not(name, mesh, candidates[name], grasp_ok_at_target, area, prefer))
-        slots.append(chosen)
-        placed_meshes[name] = mesh
-    return sorted(slots, key=lambda slot: names.index(slot.part))
+            raise KittingError(_why_not(name, mesh, candidates[name], grasp_ok_at_target, area,
+                                        layout.prefer))
+        layout.slots.append(chosen)
+    return sorted(layout.slots, key=lambda slot: names.index(slot.part))
 
 
-def _obstacles_near(slots: list[KittingSlot], corners: np.ndarray,
-                    meshes: dict[str, trimesh.Trimesh]) -> list[tuple[trimesh.Trimesh, Pose]]:
-    near = []
-    for slot in slots:
-        if np.min(np.linalg.norm(slot.footprint_world[:, None] - corners[None], axis=2)) < NEIGHBOUR_REACH_M:
-            near.append((meshes[slot.part], slot.world_from_part))
-            near.append((slot.pedestal.mesh(), slot.pedestal.world_from_pedestal))
-    return near
+def _is_board(mesh: trimesh.Trimesh) -> bool:
+    extents = np.sort(mesh.extents)
+    return bool(extents[0] < BOARD_THICKNESS_RATIO * extents[1])
 
 
-def _place_one(name, mesh, grasps, grasp_ok_at_target, area, prefer, reach, slots,
-               meshes) -> KittingSlot | None:
-    occupied = [s.footprint_world for s in slots]
-    usable_at_target: dict[int, bool] = {}
-    for rest_from_part, probability in stable_rest_poses(mesh):
-        rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
-        half = 0.5 * (rested.max(axis=0) - rested.min(axis=0))[:2]
-        long_is_x = half[0] >= half[1]
-        half_ring = np.array([max(half), min(half)])  # along the ring, across it
-        tried = 0
-        for xy, long_yaw in candidate_places(area, half_ring, prefer):
+class _Layout:
+    """The kitting layout being built: slots so far, and the checks of one more part's place."""
+
+    def __init__(self, order: list[str], meshes: dict[str, trimesh.Trimesh], area: KittingArea,
+                 prefer: np.ndarray, reach: Reach) -> None:
+        self.order, self.meshes, self.area, self.prefer, self.reach = order, meshes, area, prefer, reach
+        self.slots: list[KittingSlot] = []
+        self.usable_at_target: dict[tuple, bool] = {}
+        self.places_cache: dict[tuple, list] = {}
+
+    def rank(self, name: str) -> int:
+        return self.order.index(name)
+
+    def _near(self, slot: KittingSlot, corners: np.ndarray) -> bool:
+        gaps = np.linalg.norm(slot.footprint_world[:, None] - corners[None], axis=2)
+        return bool(np.min(gaps) < NEIGHBOUR_REACH_M) or _polygons_overlap(slot.footprint_world, corners)
+
+    def obstacles_at_pick(self, name: str, corners: np.ndarray) -> list[tuple[trimesh.Trimesh, Pose]]:
+        """What lies near ``name`` when it is picked: every pedestal, and the parts assembled after it."""
+        out = []
+        for slot in self.slots:
+            if not self._near(slot, corners):
+                continue
+            if slot.pedestal is not None:
+                out.append((slot.pedestal.mesh(), slot.pedestal.world_from_pedestal))
+            if self.rank(slot.part) > self.rank(name):
+                out.append((self.meshes[slot.part], slot.world_from_part))
+        return out
+
+    def place(self, name: str, grasps: list[Grasp], grasp_ok_at_target) -> KittingSlot | None:
+        mesh = self.meshes[name]
+        poses = stable_rest_poses(mesh)
+        stack_first = _is_board(mesh)
+        for attempt in ("stack", "ground") if stack_first else ("ground", "stack"):
+            for rest_from_part, probability in poses[:1] if attempt == "stack" else poses:
+                places = (self._stack_places(name, rest_from_part) if attempt == "stack"
+                          else self._ground_places(name, rest_from_part))
+                tried = 0
+                for world_from_rest, corners, pedestal, base in places:
+                    tried += 1
+                    if tried > MAX_PLACES_PER_POSE:
+                        break
+                    slot = self._try(name, mesh, grasps, grasp_ok_at_target, world_from_rest @ Pose.from_matrix(
+                        rest_from_part), corners, pedestal, base, probability)
+                    if slot is not None:
+                        return slot
+        return None
+
+    def _ground_places(self, name: str, rest_from_part: np.ndarray):
+        mesh_half, long_is_x = _rest_half(self.meshes[name], rest_from_part)
+        half_ring = np.array([max(mesh_half), min(mesh_half)])
+        key = tuple(np.round(half_ring, 4))
+        if key not in self.places_cache:
+            self.places_cache[key] = candidate_places(self.area, half_ring, self.prefer)
+        for xy, long_yaw in self.places_cache[key]:
+            grown = _corners(xy, long_yaw, half_ring + self.area.gap_m / 2)
+            if any(_polygons_overlap(grown, s.footprint_world) for s in self.slots):
+                continue
             yaw = long_yaw if long_is_x else long_yaw - np.pi / 2  # the rest frame's long axis along long_yaw
-            corners = _corners(xy, long_yaw, half_ring)
-            grown = _corners(xy, long_yaw, half_ring + area.gap_m / 2)
-            if any(_polygons_overlap(grown, other) for other in occupied):
+            world_from_rest = Pose([xy[0], xy[1], self.area.table_z_m + self.area.pedestal_height_m],
+                                   [1, 0, 0, 0]) @ _yaw(yaw)
+            yield (world_from_rest, _corners(xy, long_yaw, half_ring),
+                   pedestal_for(mesh_half, world_from_rest, self.area.pedestal_height_m), None)
+
+    def _stack_places(self, name: str, rest_from_part: np.ndarray):
+        """On top of a board assembled later whose top is flat and free, overhanging it on one side by
+        :data:`STACK_OVERHANG_M` (room for the fingers under the edge), its centre over the board."""
+        half, long_is_x = _rest_half(self.meshes[name], rest_from_part)
+        on_top = {s.rests_on for s in self.slots if s.rests_on}
+        for base in sorted(self.slots, key=lambda s: self.rank(s.part), reverse=True):
+            if self.rank(base.part) <= self.rank(name) or base.part in on_top:
                 continue
-            tried += 1
-            if tried > MAX_PLACES_PER_POSE:
-                break
-            world_from_rest = Pose([xy[0], xy[1], area.table_z_m + area.pedestal_height_m], [1, 0, 0, 0]) @ _yaw(yaw)
-            world_from_part = world_from_rest @ Pose.from_matrix(rest_from_part)
-            pedestal = pedestal_for(half, world_from_rest, area.pedestal_height_m)
-            own = [(pedestal.mesh(), pedestal.world_from_pedestal)]
-            obstacles = own + _obstacles_near(slots, corners, meshes)
-            chosen, reached = None, None
-            at_pick = {_grasp_key(g) for g in feasible_grasps(grasps, world_from_part, obstacles, None,
-                                                              floor_z=area.table_z_m)}
-            for grasp in (g for g in grasps if _grasp_key(g) in at_pick):  # caller's order (best at target first)
-                key = id(grasp)
-                if key not in usable_at_target:
-                    usable_at_target[key] = bool(grasp_ok_at_target(name, grasp))
-                if not usable_at_target[key]:
+            top = _flat_top(self.meshes[base.part], base.world_from_part)
+            if top is None:
+                continue
+            top_z, base_centre, base_long_yaw, base_half = top
+            half_ring = np.array([max(half), min(half)])
+            along = np.array([np.cos(base_long_yaw), np.sin(base_long_yaw)])
+            across = np.array([-along[1], along[0]])
+            for axis, k in ((across, 1), (across, -1), (along, 1), (along, -1)):
+                index = 1 if axis is across else 0
+                shift = base_half[index] - half_ring[index] + STACK_OVERHANG_M
+                shift = float(np.clip(shift, 0.0, base_half[index] - STACK_SUPPORT_M))
+                xy = base_centre + k * shift * axis
+                corners = _corners(xy, base_long_yaw, half_ring)
+                lo, hi = np.asarray(self.area.table_min_xy), np.asarray(self.area.table_max_xy)
+                if np.any(corners < lo) or np.any(corners > hi):
                     continue
-                others = [o for s in slots for o in ((meshes[s.part], s.world_from_part),
-                                                               (s.pedestal.mesh(), s.pedestal.world_from_pedestal))]
-                reached = reach.at_pick(name, grasp, world_from_part, others)
-                if reached is not None:
-                    chosen = grasp
-                    break
-            if chosen is None:
+                grown = _corners(xy, base_long_yaw, half_ring + self.area.gap_m / 2)
+                stack = self._stack_of(base)
+                if any(_polygons_overlap(grown, s.footprint_world) for s in self.slots if s.part not in stack):
+                    continue
+                yaw = base_long_yaw if long_is_x else base_long_yaw - np.pi / 2
+                world_from_rest = Pose([xy[0], xy[1], top_z], [1, 0, 0, 0]) @ _yaw(yaw)
+                yield world_from_rest, corners, None, base
+
+    def _stack_of(self, slot: KittingSlot) -> set[str]:
+        members = {slot.part}
+        below = slot
+        while below.rests_on:
+            below = next(s for s in self.slots if s.part == below.rests_on)
+            members.add(below.part)
+        return members
+
+    def _try(self, name, mesh, grasps, grasp_ok_at_target, world_from_part, corners, pedestal, base,
+             probability) -> KittingSlot | None:
+        own = [] if pedestal is None else [(pedestal.mesh(), pedestal.world_from_pedestal)]
+        obstacles = own + self.obstacles_at_pick(name, corners)
+        at_pick = {_grasp_key(g) for g in feasible_grasps(grasps, world_from_part, obstacles, None,
+                                                          floor_z=self.area.table_z_m)}
+        chosen, reached = None, None
+        for grasp in (g for g in grasps if _grasp_key(g) in at_pick):  # caller's order (best at target first)
+            key = (name, _grasp_key(grasp))
+            if key not in self.usable_at_target:
+                self.usable_at_target[key] = bool(grasp_ok_at_target(name, grasp))
+            if not self.usable_at_target[key]:
                 continue
-            if not _neighbours_still_graspable(slots, mesh, world_from_part, pedestal, corners, area):
+            # the support (own pedestal, or the board under it) is left out: the grasp check covered the hand
+            present = [o for slot in self.slots if base is None or slot.part != base.part
+                       for o in self._bodies(slot, name)]
+            reached = self.reach.at_pick(name, grasp, world_from_part, present)
+            if reached is not None:
+                chosen = grasp
+                break
+        if chosen is None:
+            return None
+        # the parts picked before this one must still be reachable and graspable with it (and its pedestal)
+        new_part = [(mesh, world_from_part)]
+        new_static = own
+        for slot in self.slots:
+            earlier = self.rank(slot.part) < self.rank(name)
+            added = (new_part if earlier else []) + new_static
+            if not added or not self._near(slot, corners):
                 continue
-            new = [(mesh, world_from_part), (pedestal.mesh(), pedestal.world_from_pedestal)]
-            if not all(reach.still_clear(s.reach, new) for s in slots):
-                continue
-            return KittingSlot(name, world_from_part, pedestal, chosen, probability, corners, reached)
-    return None
+            support = [] if slot.pedestal is None else [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal)]
+            if not feasible_grasps([slot.grasp], slot.world_from_part, added + support, None,
+                                   floor_z=self.area.table_z_m):
+                return None
+            if not self.reach.still_clear(slot.reach, added):
+                return None
+        return KittingSlot(name, world_from_part, pedestal, chosen, probability, corners, reached,
+                           None if base is None else base.part)
+
+    def _bodies(self, slot: KittingSlot, name: str) -> list[tuple[trimesh.Trimesh, Pose]]:
+        """A slot's bodies present when ``name`` is picked: its pedestal always, the part if assembled later."""
+        out = [] if slot.pedestal is None else [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal)]
+        if self.rank(slot.part) > self.rank(name):
+            out.append((self.meshes[slot.part], slot.world_from_part))
+        return out
+
+
+def _rest_half(mesh: trimesh.Trimesh, rest_from_part: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Half extents (x, y) of the part's footprint in its rest frame, and whether x is the long side."""
+    rested = mesh.vertices @ rest_from_part[:3, :3].T
+    half = 0.5 * (rested.max(axis=0) - rested.min(axis=0))[:2]
+    return half, bool(half[0] >= half[1])
+
+
+def _flat_top(mesh: trimesh.Trimesh, world_from_part: Pose) -> tuple[float, np.ndarray, float, np.ndarray] | None:
+    """(top z, footprint centre xy, long-side direction in rad, half extents (long, short)) when the posed
+    part's top is one flat face over most of its footprint (a board lying on its face), else None."""
+    world = world_from_part.apply(mesh.vertices)
+    top_z = float(world[:, 2].max())
+    normals = mesh.face_normals @ world_from_part.rotation.T
+    centres = world[mesh.faces].mean(axis=1)
+    upward = (normals[:, 2] > 0.999) & (centres[:, 2] > top_z - 1e-4)
+    footprint = world[:, :2]
+    # the footprint's own axes: the board's edges (its two largest extents lie in the horizontal plane)
+    axes = world_from_part.rotation[:2, :]
+    in_plane = [k for k in range(3) if abs(world_from_part.rotation[2, k]) < 1e-3]
+    if len(in_plane) < 2:
+        return None
+    spans = [np.ptp(footprint @ axes[:, k] / np.linalg.norm(axes[:, k])) for k in in_plane]
+    long_k = in_plane[int(np.argmax(spans))]
+    long_axis = axes[:, long_k] / np.linalg.norm(axes[:, long_k])
+    short_axis = np.array([-long_axis[1], long_axis[0]])
+    along, across = footprint @ long_axis, footprint @ short_axis
+    half = 0.5 * np.array([np.ptp(along), np.ptp(across)])
+    if mesh.area_faces[upward].sum() < TOP_FACE_FRACTION * 4 * half[0] * half[1]:
+        return None
+    centre = 0.5 * (along.max() + along.min()) * long_axis + 0.5 * (across.max() + across.min()) * short_axis
+    return top_z, centre, float(np.arctan2(long_axis[1], long_axis[0])), half
 
 
 def _grasp_key(grasp: Grasp) -> tuple:
     """The same grasp whatever its ranking scores (ranking returns re-scored copies)."""
     return (tuple(np.round(grasp.part_from_tcp.position, 9)), tuple(np.round(grasp.part_from_tcp.quat_wxyz, 9)),
             round(grasp.opening_m, 9))
-
-
-def _neighbours_still_graspable(slots, mesh, world_from_part, pedestal, corners, area) -> bool:
-    for slot in slots:
-        if np.min(np.linalg.norm(slot.footprint_world[:, None] - corners[None], axis=2)) >= NEIGHBOUR_REACH_M:
-            continue
-        obstacles = [(mesh, world_from_part), (pedestal.mesh(), pedestal.world_from_pedestal),
-                     (slot.pedestal.mesh(), slot.pedestal.world_from_pedestal)]
-        if not feasible_grasps([slot.grasp], slot.world_from_part, obstacles, None, floor_z=area.table_z_m):
-            return False
-    return True
 
 
 def _why_not(name, mesh, grasps, grasp_ok_at_target, area, prefer) -> str:

@@ -84,7 +84,54 @@ def via_velocities(waypoints: np.ndarray, limits: JointLimits, speed_fraction: f
     return velocities
 
 
-def _time_segment(q0, v0, q1, v1, limits: JointLimits) -> RuckigTrajectory:
+class StraightSegment:
+    """A motion exactly along the joint-space segment ``q0 -> q1``: a one-dimensional Ruckig trajectory of the
+    arc length ``s`` (rad) with limits scaled so that every joint keeps within its own, ``q = q0 + s * u``.
+    Same interface as Ruckig's trajectory (``duration``, ``at_time``)."""
+
+    def __init__(self, q0: np.ndarray, u: np.ndarray, length: float, s_velocity: tuple[float, float],
+                 limits: JointLimits) -> None:
+        self.q0, self.u = np.asarray(q0, dtype=np.float64), u
+        scale = np.maximum(np.abs(u), 1e-12)
+        inp = InputParameter(1)
+        inp.current_position, inp.current_velocity, inp.current_acceleration = [0.0], [s_velocity[0]], [0.0]
+        inp.target_position, inp.target_velocity, inp.target_acceleration = [length], [s_velocity[1]], [0.0]
+        inp.max_velocity = [float(np.min(limits.velocity / scale))]
+        inp.max_acceleration = [float(np.min(limits.acceleration / scale))]
+        inp.max_jerk = [float(np.min(limits.jerk / scale))]
+        self.trajectory = RuckigTrajectory(1)
+        result = Ruckig(1).calculate(inp, self.trajectory)
+        if result not in (Result.Working, Result.Finished):
+            raise ValueError(f"Ruckig could not time a straight segment ({result})")
+
+    @property
+    def duration(self) -> float:
+        return self.trajectory.duration
+
+    def at_time(self, t: float):
+        s, ds, dds = (value[0] for value in self.trajectory.at_time(t))
+        return list(self.q0 + s * self.u), list(ds * self.u), list(dds * self.u)
+
+
+def _along(v: np.ndarray, u: np.ndarray) -> float | None:
+    """``v``'s speed along the unit vector ``u`` when ``v`` is parallel to it (or zero) and not backwards."""
+    speed = float(np.dot(v, u))
+    if speed < -1e-12 or np.linalg.norm(v - speed * u) > 1e-9 * max(1.0, abs(speed)):
+        return None
+    return max(speed, 0.0)
+
+
+def _time_segment(q0, v0, q1, v1, limits: JointLimits):
+    """A Ruckig trajectory from (q0, v0) to (q1, v1) at rest acceleration. When both velocities point along the
+    segment (stops included) it stays exactly on it (:class:`StraightSegment`: Ruckig's phase synchronisation
+    is not always possible and falls back to time synchronisation, which leaves the straight line)."""
+    q0, q1 = np.asarray(q0, dtype=np.float64), np.asarray(q1, dtype=np.float64)
+    length = float(np.linalg.norm(q1 - q0))
+    if length > 1e-12:
+        u = (q1 - q0) / length
+        s0, s1 = _along(np.asarray(v0, dtype=np.float64), u), _along(np.asarray(v1, dtype=np.float64), u)
+        if s0 is not None and s1 is not None:
+            return StraightSegment(q0, u, length, (s0, s1), limits)
     dof = len(q0)
     inp = InputParameter(dof)
     inp.current_position, inp.current_velocity, inp.current_acceleration = list(q0), list(v0), [0.0] * dof

@@ -28,13 +28,21 @@ def test_a_board_rests_flat_most_often():
 def test_chair_parts_lie_apart_in_the_ring_with_grasps_valid_at_pick():
     assembly = read_assembly(sample_folder("chair"))
     checker = GraspChecker(assembly)
-    slots = plan_kitting(assembly.part_names, [p.mesh for p in assembly.parts], checker.candidates,
+    names = assembly.part_names  # taken as the assembly order
+    slots = plan_kitting(names, [p.mesh for p in assembly.parts], checker.candidates,
                          lambda name, grasp: True, AREA, prefer_near_xy=(0.5, 0.0))
-    assert [s.part for s in slots] == assembly.part_names
+    assert [s.part for s in slots] == names
+    by_name = {s.part: s for s in slots}
     for k, slot in enumerate(slots):
         mesh = assembly.part(slot.part).mesh
         world = slot.world_from_part.apply(mesh.vertices)
-        assert world[:, 2].min() == pytest.approx(0.04, abs=1e-6)  # resting on its pedestal
+        if slot.rests_on is None:
+            assert world[:, 2].min() == pytest.approx(0.04, abs=1e-6)  # resting on its pedestal
+        else:  # on a board assembled after it
+            base = by_name[slot.rests_on]
+            assert names.index(slot.rests_on) > k
+            top = base.world_from_part.apply(assembly.part(base.part).mesh.vertices)[:, 2].max()
+            assert world[:, 2].min() == pytest.approx(top, abs=1e-6)
         centre = slot.footprint_world.mean(axis=0)
         assert 0.32 <= np.linalg.norm(centre) <= 0.72 + 1e-9
         # the footprint holds the part's own x-y extent and lies on the table, outside the jig's keep-out
@@ -43,10 +51,15 @@ def test_chair_parts_lie_apart_in_the_ring_with_grasps_valid_at_pick():
         assert np.all(slot.footprint_world >= [-0.55, -0.8]) and np.all(slot.footprint_world <= [0.95, 0.8])
         assert not np.any(np.all((world[:, :2] > [0.25, -0.25]) & (world[:, :2] < [0.75, 0.25]), axis=1))
         for other in slots[:k]:
-            assert not _polygons_overlap(slot.footprint_world, other.footprint_world)
-        neighbours = [(assembly.part(o.part).mesh, o.world_from_part) for o in slots if o is not slot]
-        neighbours += [(o.pedestal.mesh(), o.pedestal.world_from_pedestal) for o in slots]
-        again = feasible_grasps([slot.grasp], slot.world_from_part, neighbours, None, floor_z=0.0)
+            stacked = slot.part in (other.rests_on, other.part) or other.part == slot.rests_on
+            assert stacked or not _polygons_overlap(slot.footprint_world, other.footprint_world)
+        # when it is picked: the pedestals and the parts assembled after it are there, its support aside
+        present = [(assembly.part(o.part).mesh, o.world_from_part) for o in slots[k + 1:]
+                   if o.part != slot.rests_on]
+        present += [(o.pedestal.mesh(), o.pedestal.world_from_pedestal) for o in slots if o.pedestal is not None]
+        if slot.rests_on is not None:
+            present.append((assembly.part(slot.rests_on).mesh, by_name[slot.rests_on].world_from_part))
+        again = feasible_grasps([slot.grasp], slot.world_from_part, present, None, floor_z=0.0)
         assert len(again) == 1
 
 
@@ -65,5 +78,5 @@ def test_a_ring_too_small_says_so():
     from planning.grasp import antipodal_grasps
 
     grasps = antipodal_grasps(board, np.random.default_rng(0))
-    with pytest.raises(KittingError, match="does not fit the kitting ring"):
+    with pytest.raises(KittingError, match="too large for this cell"):
         plan_kitting(["board"], [board], {"board": grasps}, lambda n, g: True, small)
