@@ -3,6 +3,11 @@
 Pure planning: the validity check is a function of the 7 joint values (e.g.
 :meth:`planning.robot_collision.RobotCollisionChecker.is_valid`); the result is a path of waypoints (K, 7) in
 radians. Failures are typed (:class:`MotionPlanningError` with ``kind``) so the cell can name the step.
+
+Edges (straight joint-space segments) are checked either by OMPL's discrete motion validator, every
+``check_resolution`` of the joint-space diagonal, or, when the caller passes ``segment_valid(q_from, q_to)``
+(e.g. :meth:`planning.robot_collision.RobotCollisionChecker.segment_valid`, which spaces its checks by how far
+the robot's points move and checks a whole edge in one vectorised batch), by that function.
 """
 
 from __future__ import annotations
@@ -14,6 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 
 PLANNERS = ("RRTConnect", "RRT", "RRTstar", "PRM", "KPIECE1", "BKPIECE1", "LBKPIECE1", "BITstar")
+# planners that check edges only with the two-state checkMotion (the one a Python motion validator overrides); the
+# KPIECE family also asks for the last valid state of an edge, so it keeps OMPL's discrete validator
+_SEGMENT_VALIDATOR_PLANNERS = frozenset({"RRTConnect", "RRT", "RRTstar", "PRM", "BITstar"})
 _seed_lock = threading.Lock()
 _seeded: int | None = None
 
@@ -30,10 +38,11 @@ class MotionPlanningError(RuntimeError):
 class MotionSettings:
     planner: str = "RRTConnect"
     time_limit_s: float = 5.0
-    # fraction of the joint-space diagonal between validity checks along edges (OMPL's resolution); the Panda's
-    # diagonal is about 14 rad, so 0.001 checks every 0.014 rad (a few millimetres at the hand)
+    # fraction of the joint-space diagonal between validity checks along edges (OMPL's resolution) where no
+    # segment_valid is given, or for the KPIECE planners; the Panda's diagonal is about 14 rad, so 0.001 checks
+    # every 0.014 rad (up to a centimetre at the hand)
     check_resolution: float = 0.001
-    simplify: bool = True
+    simplify: bool = True  # shorten the path (see _simplify)
     seed: int = 0
 
 
@@ -63,9 +72,38 @@ def straight_line_valid(is_valid: Callable[[np.ndarray], bool], q_from: np.ndarr
     return all(is_valid(q_from + (q_to - q_from) * (k / steps)) for k in range(steps + 1))
 
 
+def _segment_validator(ob, information, segment_valid: Callable[[np.ndarray, np.ndarray], bool], dof: int):
+    """An OMPL motion validator that hands each edge to ``segment_valid`` (its start state is valid)."""
+
+    class SegmentValidator(ob.MotionValidator):
+        def checkMotion(self, s1, s2, *last_valid):  # OMPL's method name
+            if last_valid:
+                raise NotImplementedError("this motion validator does not report the last valid state")
+            return bool(segment_valid(np.array([s1[i] for i in range(dof)]), np.array([s2[i] for i in range(dof)])))
+
+    return SegmentValidator(information)
+
+
+def _simplify(og, information, path) -> None:
+    """Shorten ``path`` in place: drop vertices whose neighbours see each other, pull the path taut (OMPL's rope
+    shortcutting), drop vertices again. Every new edge is checked by the space's motion validator. About as short as
+    OMPL's full ``simplify`` (which adds B-spline smoothing and repeated passes) on the pick-and-place benchmark, at
+    a third of its checks (benchmarks/motion.py)."""
+    simplifier = og.PathSimplifier(information)
+    simplifier.reduceVertices(path)
+    simplifier.ropeShortcutPath(path)
+    simplifier.reduceVertices(path)
+
+
 def plan_joint_path(is_valid: Callable[[np.ndarray], bool], start_q: np.ndarray, goal_q: np.ndarray,
-                    lower: np.ndarray, upper: np.ndarray, settings: MotionSettings = MotionSettings()) -> np.ndarray:
-    """A collision-free path (K, 7) from ``start_q`` to ``goal_q`` within [lower, upper], or raise."""
+                    lower: np.ndarray, upper: np.ndarray, settings: MotionSettings = MotionSettings(),
+                    segment_valid: Callable[[np.ndarray, np.ndarray], bool] | None = None) -> np.ndarray:
+    """A collision-free path (K, 7) from ``start_q`` to ``goal_q`` within [lower, upper], or raise.
+
+    ``is_valid(q)``: whether one configuration (7,) radians is free. ``segment_valid(q_from, q_to)``, optional:
+    whether the straight segment between two configurations is free (``q_from`` known valid); when given it checks
+    the straight start-goal shortcut and every edge of the planners that allow it (RRTConnect, RRT, RRTstar, PRM,
+    BITstar), instead of single states every ``settings.check_resolution``."""
     start_q, goal_q = np.asarray(start_q, dtype=np.float64), np.asarray(goal_q, dtype=np.float64)
     if settings.planner not in PLANNERS:
         raise MotionPlanningError("invalid_request", f"unknown planner {settings.planner!r}; choose one of {PLANNERS}")
@@ -77,7 +115,8 @@ def plan_joint_path(is_valid: Callable[[np.ndarray], bool], start_q: np.ndarray,
         raise MotionPlanningError("start_in_collision", "the start configuration is in collision")
     if not is_valid(goal_q):
         raise MotionPlanningError("goal_in_collision", "the goal configuration is in collision")
-    if straight_line_valid(is_valid, start_q, goal_q):
+    direct = segment_valid(start_q, goal_q) if segment_valid else straight_line_valid(is_valid, start_q, goal_q)
+    if direct:
         return np.stack([start_q, goal_q])
     ob, og, ou = _ompl()
     _seed_once(ou, settings.seed)
@@ -92,6 +131,10 @@ def plan_joint_path(is_valid: Callable[[np.ndarray], bool], start_q: np.ndarray,
     setup.setStateValidityChecker(lambda state: bool(is_valid(np.array([state[i] for i in range(dof)]))))
     information = setup.getSpaceInformation()
     information.setStateValidityCheckingResolution(settings.check_resolution)
+    validator = None  # this name keeps the Python validator alive while OMPL uses it
+    if segment_valid is not None and settings.planner in _SEGMENT_VALIDATOR_PLANNERS:
+        validator = _segment_validator(ob, information, segment_valid, dof)
+        information.setMotionValidator(validator)
     start, goal = space.allocState(), space.allocState()
     for i in range(dof):
         start[i], goal[i] = float(start_q[i]), float(goal_q[i])
@@ -100,9 +143,9 @@ def plan_joint_path(is_valid: Callable[[np.ndarray], bool], start_q: np.ndarray,
     solved = setup.solve(settings.time_limit_s)
     if not solved or "Exact" not in str(solved):
         raise MotionPlanningError("timeout", f"{settings.planner} found no path within {settings.time_limit_s:.1f} s")
-    if settings.simplify:
-        setup.simplifySolution(min(1.0, settings.time_limit_s))
     path = setup.getSolutionPath()
+    if settings.simplify:
+        _simplify(og, information, path)
     waypoints = np.array([[path.getState(k)[i] for i in range(dof)] for k in range(path.getStateCount())])
     waypoints[0], waypoints[-1] = start_q, goal_q
     return waypoints

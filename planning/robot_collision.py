@@ -47,6 +47,8 @@ def _allowed_pairs() -> set[frozenset]:
 
 ALLOWED_SELF_PAIRS = _allowed_pairs()
 _REQUEST = fcl.CollisionRequest()  # read-only; a fresh CollisionResult per call (results accumulate contacts)
+SEGMENT_STEP_M = 0.002  # default: no point of the robot moves more than this between checks along a segment
+_BATCH = 256  # configurations per vectorised forward-kinematics / broad-phase batch
 
 
 @dataclass(frozen=True)
@@ -109,16 +111,67 @@ def _compile_chain(chain: Chain, opening_m: float) -> _CompiledChain:
     return _CompiledChain(tuple(parent), fixed, rotation_k, rotation_k @ cross, links)
 
 
-def _anchors(compiled: _CompiledChain, world_from_base: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """(8, 4, 4) world poses of the base (0) and the child links of the seven arm joints (1..7); ``q`` radians."""
-    steps = compiled.parent_from_joint.copy()
-    steps[:, :3, :3] += np.sin(q)[:, None, None] * compiled.rotation_k
-    steps[:, :3, :3] += (1.0 - np.cos(q))[:, None, None] * compiled.rotation_k2
-    anchors = np.empty((8, 4, 4))
-    anchors[0] = world_from_base
+def _anchors(compiled: _CompiledChain, world_from_base: np.ndarray, qs: np.ndarray) -> np.ndarray:
+    """(N, 8, 4, 4) world poses of the base (0) and the child links of the seven arm joints (1..7) for the
+    configurations ``qs`` (N, 7) radians."""
+    sin, cos = np.sin(qs)[:, :, None, None], np.cos(qs)[:, :, None, None]
+    steps = np.repeat(compiled.parent_from_joint[None], len(qs), axis=0)
+    steps[:, :, :3, :3] += sin * compiled.rotation_k + (1.0 - cos) * compiled.rotation_k2
+    anchors = np.empty((len(qs), 8, 4, 4))
+    anchors[:, 0] = world_from_base
     for k, p in enumerate(compiled.parent):
-        np.matmul(anchors[p], steps[k], out=anchors[k + 1])
+        np.matmul(anchors[:, p], steps[:, k], out=anchors[:, k + 1])
     return anchors
+
+
+def _sweep_radii(compiled: _CompiledChain, body_anchor: np.ndarray, body_corners: np.ndarray) -> np.ndarray:
+    """(7,) metres: for each arm joint, an upper bound on the distance from its axis of any point of the bodies it
+    moves (anchor origins chained by their offsets, plus each body's farthest box corner from its anchor).
+
+    A straight joint-space motion by dq moves no point of the robot farther than ``sum(|dq| * radii)``: each
+    joint's rotation moves a point at distance r from its axis by at most r times the angle."""
+    offsets = np.linalg.norm(compiled.parent_from_joint[:, :3, 3], axis=1)  # joint k's origin in its parent anchor
+    reach = np.linalg.norm(body_corners, axis=2).max(axis=1)  # (M,) farthest corner from the body's anchor origin
+    radii = np.zeros(len(compiled.parent))
+    for k in range(len(compiled.parent)):
+        for anchor, r in zip(body_anchor, reach):
+            distance, node = r, int(anchor)
+            while node > k + 1:  # walk up to joint k's child anchor, adding the origin offsets on the way
+                distance += offsets[node - 1]
+                node = compiled.parent[node - 1]
+            if node == k + 1:
+                radii[k] = max(radii[k], distance)
+    return radii
+
+
+def _obb_overlap(centre_a: np.ndarray, axes_a: np.ndarray, half_a: np.ndarray, centre_b: np.ndarray,
+                 axes_b: np.ndarray, half_b: np.ndarray) -> np.ndarray:
+    """(P,) whether pairs of oriented boxes may overlap: not separated along any of the 6 face normals
+    (centres (P, 3), axes (P, 3, 3) as columns, half extents (P, 3), metres). Conservative: the 9 edge-edge axes
+    are not tested, so a few separated pairs pass to the exact test."""
+    if len(centre_a) == 0:
+        return np.zeros(0, dtype=bool)
+    rotation = np.einsum("pki,pkj->pij", axes_a, axes_b)  # b's axes in a's frame
+    spread = np.abs(rotation) + 1e-9
+    offset = centre_b - centre_a
+    in_a = np.einsum("pki,pk->pi", axes_a, offset)
+    in_b = np.einsum("pkj,pk->pj", axes_b, offset)
+    apart_a = np.abs(in_a) > half_a + np.einsum("pij,pj->pi", spread, half_b)
+    apart_b = np.abs(in_b) > half_b + np.einsum("pij,pi->pj", spread, half_a)
+    return ~(apart_a.any(axis=1) | apart_b.any(axis=1))
+
+
+def _bisection_order(count: int) -> np.ndarray:
+    """Indices 0..count-1, coarse to fine (the middle first, then the quarters, ...), so that a collision in an
+    interval is usually found after few checks."""
+    order, seen, step = [], np.zeros(count, dtype=bool), 1 << max(0, int(count).bit_length())
+    while step >= 1:
+        for index in range(step - 1, count, step):
+            if not seen[index]:
+                seen[index] = True
+                order.append(index)
+        step //= 2
+    return np.array(order, dtype=np.int64)
 
 
 def _fcl_transform(matrix: np.ndarray) -> fcl.Transform:
@@ -186,7 +239,7 @@ class RobotCollisionChecker:
     # --- world and held part ---------------------------------------------------------------------------------
     def set_obstacles(self, obstacles: dict[str, tuple[ConvexPart, np.ndarray]]) -> None:
         """Replace the world: name -> (ConvexPart, world_from_part (4, 4), metres). The robot model is kept."""
-        names, objects, boxes = [], [], []
+        names, objects, boxes, centres, axes, halves = [], [], [], [], [], []
         for name, (part, world_from_part) in obstacles.items():
             matrix = np.asarray(world_from_part, dtype=np.float64)
             if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
@@ -198,10 +251,17 @@ class RobotCollisionChecker:
                 names.append(name)
                 world = vertices @ matrix[:3, :3].T + matrix[:3, 3]
                 boxes.append([world.min(axis=0), world.max(axis=0)])
+                low, high = vertices.min(axis=0), vertices.max(axis=0)  # the piece's box in the part frame
+                centres.append(matrix[:3, :3] @ (0.5 * (low + high)) + matrix[:3, 3])
+                axes.append(matrix[:3, :3])
+                halves.append(0.5 * (high - low))
         self.world_names: list[str] = names
         self.world_objects: list[fcl.CollisionObject] = objects
         self.world_boxes = np.array(boxes, dtype=np.float64).reshape(-1, 2, 3)
-        self._world_low, self._world_high = self.world_boxes[None, :, 0, :], self.world_boxes[None, :, 1, :]
+        self._world_upper = np.concatenate([self.world_boxes[:, 1], -self.world_boxes[:, 0]], axis=1)  # (W, 6)
+        self._world_obb = (np.array(centres).reshape(-1, 3), np.array(axes).reshape(-1, 3, 3),
+                           np.array(halves).reshape(-1, 3))  # oriented boxes: centre, axes (columns), half extents
+        self._pair_masks: dict[frozenset, np.ndarray] = {}
         self._ignore_masks = {frozenset(): np.ones(len(names), dtype=bool)}
 
     @property
@@ -252,23 +312,34 @@ class RobotCollisionChecker:
         self._body_names = names
         self._vs_world = np.concatenate([self._links_vs_world, np.ones(len(names) - len(self._link_names), bool)])
         self._tcp_anchor, self._anchor_from_tcp = links[TCP_LINK]
+        self._pair_masks = {}
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+        corners = self._body_centre[:, None, :] + signs[None] * self._body_half[:, None, :]  # body frames
+        corners = np.einsum("bij,bkj->bki", self._anchor_from_body[:, :3, :3], corners) + self._anchor_from_body[
+            :, None, :3, 3]
+        self.sweep_radii_m = _sweep_radii(self._compiled, self._body_anchor, corners)
         self._cached_q: bytes | None = None
 
     # --- poses ------------------------------------------------------------------------------------------------
+    def _boxes(self, qs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """For configurations ``qs`` (N, 7): anchors (N, 8, 4, 4), world_from_body (N, M, 4, 4), the bodies'
+        oriented-box centres (N, M, 3) and their world-axis-aligned boxes, low and high (N, M, 3), metres."""
+        anchors = _anchors(self._compiled, self.world_from_base, qs)
+        world_from_body = anchors[:, self._body_anchor] @ self._anchor_from_body
+        rotation = world_from_body[..., :3, :3]
+        centre = np.einsum("nbij,bj->nbi", rotation, self._body_centre) + world_from_body[..., :3, 3]
+        half = np.einsum("nbij,bj->nbi", np.abs(rotation), self._body_half)
+        return anchors, world_from_body, centre, centre - half, centre + half
+
     def _poses(self, q: np.ndarray) -> None:
-        """Set the cache for configuration ``q``: anchors, body poses and world-axis-aligned body boxes."""
+        """Cache the poses of configuration ``q`` (7,): the last one is often asked again (is_valid, then
+        first_collision or world_from_tcp)."""
         key = q.tobytes()
         if key == self._cached_q:
             return
-        anchors = _anchors(self._compiled, self.world_from_base, q)
-        world_from_body = anchors[self._body_anchor] @ self._anchor_from_body
-        rotation = world_from_body[:, :3, :3]
-        centre = np.einsum("bij,bj->bi", rotation, self._body_centre) + world_from_body[:, :3, 3]
-        half = np.einsum("bij,bj->bi", np.abs(rotation), self._body_half)
-        self._anchors_now = anchors
-        self._world_from_body = world_from_body
-        self._low, self._high = centre - half, centre + half
-        self._placed = np.zeros(len(self._body_objects), dtype=bool)
+        anchors, world_from_body, centre, low, high = self._boxes(q[None])
+        self._anchors_now = anchors[0]
+        self._boxes_now = (world_from_body, centre, low, high)
         self._cached_q = key
 
     def world_from_tcp(self, q: np.ndarray) -> np.ndarray:
@@ -284,44 +355,121 @@ class RobotCollisionChecker:
             self._ignore_masks[ignore] = mask
         return mask
 
-    def _collide(self, body: int, other: fcl.CollisionObject) -> bool:
-        if not self._placed[body]:
-            self._body_objects[body].setTransform(_fcl_transform(self._world_from_body[body]))
-            self._placed[body] = True
-        return bool(fcl.collide(self._body_objects[body], other, _REQUEST, fcl.CollisionResult()))
+    def _pair_mask(self, ignore: frozenset[str]) -> np.ndarray:
+        """(M, W) which body may meet which world piece: not the base link, not an ignored obstacle."""
+        mask = self._pair_masks.get(ignore)
+        if mask is None:
+            mask = self._vs_world[:, None] & self._world_mask(ignore)[None, :]
+            self._pair_masks[ignore] = mask
+        return mask
+
+    def _candidates(self, world_from_body: np.ndarray, centre: np.ndarray, low: np.ndarray, high: np.ndarray,
+                    ignore: frozenset[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Pairs that may touch, for N configurations: (configuration, rank, body, other) arrays, sorted by
+        configuration then rank (0: link against a world piece, 1: two links, 2: held piece against a world
+        piece). Broad phase: the bodies' boxes swept over the batch against the world boxes, then per configuration
+        axis-aligned boxes, then the 6 face axes of the two oriented boxes (separating-axis test)."""
+        rotation = world_from_body[..., :3, :3]
+        lower = np.concatenate([low, -high], axis=2)  # (N, M, 6); boxes meet when lower_a <= upper_b
+        upper = np.concatenate([high, -low], axis=2)
+        if len(low) > 1:  # world pairs near the whole batch first, then per configuration
+            swept = np.concatenate([low.min(axis=0), -high.max(axis=0)], axis=1)  # (M, 6)
+            body, piece = np.nonzero((swept[:, None, :] <= self._world_upper).all(axis=2) & self._pair_mask(ignore))
+            n, k = np.nonzero((lower[:, body] <= self._world_upper[piece]).all(axis=2))
+            body, piece = body[k], piece[k]
+        else:
+            body, piece = np.nonzero((lower[0, :, None, :] <= self._world_upper).all(axis=2) & self._pair_mask(ignore))
+            n = np.zeros(len(body), dtype=np.int64)
+        first, second = self._self_pairs[:, 0], self._self_pairs[:, 1]
+        n_self, k = np.nonzero((lower[:, first] <= upper[:, second]).all(axis=2))
+        a, b = first[k], second[k]
+        # one separating-axis test for both kinds of pairs
+        w_centre, w_axes, w_half = self._world_obb
+        keep = _obb_overlap(np.concatenate([centre[n, body], centre[n_self, a]]),
+                            np.concatenate([rotation[n, body], rotation[n_self, a]]),
+                            np.concatenate([self._body_half[body], self._body_half[a]]),
+                            np.concatenate([w_centre[piece], centre[n_self, b]]),
+                            np.concatenate([w_axes[piece], rotation[n_self, b]]),
+                            np.concatenate([w_half[piece], self._body_half[b]]))
+        configuration = np.concatenate([n, n_self])[keep]
+        rank = np.concatenate([np.where(body < len(self._link_names), 0, 2), np.ones(len(a), dtype=np.int64)])[keep]
+        order = np.lexsort((rank, configuration))
+        return (configuration[order], rank[order], np.concatenate([body, a])[keep][order],
+                np.concatenate([piece, b])[keep][order])
+
+    def _narrow(self, world_from_body: np.ndarray, pairs) -> tuple[int, int, bool] | None:
+        """FCL on one configuration's candidate pairs ((rank, body, other) triples, in order): (body, other,
+        other_is_link) of the first collision, or None."""
+        placed = np.zeros(len(self._body_objects), dtype=bool)
+        objects = self._body_objects
+        for rank, body, other in pairs:
+            if not placed[body]:
+                objects[body].setTransform(_fcl_transform(world_from_body[body]))
+                placed[body] = True
+            if rank == 1:
+                if not placed[other]:
+                    objects[other].setTransform(_fcl_transform(world_from_body[other]))
+                    placed[other] = True
+                target = objects[other]
+            else:
+                target = self.world_objects[other]
+            if fcl.collide(objects[body], target, _REQUEST, fcl.CollisionResult()):
+                return int(body), int(other), rank == 1
+        return None
 
     def _first_hit(self, q: np.ndarray, ignore: frozenset[str]) -> tuple[int, int, bool] | None:
-        """(body, other, other_is_link) of the first collision, or None. Order: links against the world, link
-        pairs, held pieces against the world."""
         q = np.ascontiguousarray(q, dtype=np.float64)
         if q.shape != (7,):
             raise ValueError(f"q must hold the 7 arm joint values (radians), got shape {q.shape}")
         self._poses(q)
-        low, high = self._low, self._high
-        n_links = len(self._link_names)
-        candidates = np.empty((0, 2), dtype=np.int64)
-        if len(self.world_objects):
-            near = (low[:, None, :] <= self._world_high).all(axis=2)
-            near &= (self._world_low <= high[:, None, :]).all(axis=2)
-            near &= self._vs_world[:, None]
-            near &= self._world_mask(ignore)[None, :]
-            candidates = np.argwhere(near)  # row-major: bodies in order, links before held pieces
-        split = int(np.searchsorted(candidates[:, 0], n_links))
-        for body, k in candidates[:split]:
-            if self._collide(body, self.world_objects[k]):
-                return int(body), int(k), False
-        first, second = self._self_pairs[:, 0], self._self_pairs[:, 1]
-        overlapping = (low[first] <= high[second]).all(axis=1) & (low[second] <= high[first]).all(axis=1)
-        for i, j in self._self_pairs[overlapping]:
-            if not self._placed[j]:
-                self._body_objects[j].setTransform(_fcl_transform(self._world_from_body[j]))
-                self._placed[j] = True
-            if self._collide(i, self._body_objects[j]):
-                return int(i), int(j), True
-        for body, k in candidates[split:]:
-            if self._collide(body, self.world_objects[k]):
-                return int(body), int(k), False
+        world_from_body, centre, low, high = self._boxes_now
+        _, rank, body, other = self._candidates(world_from_body, centre, low, high, ignore)
+        if len(rank) == 0:
+            return None
+        return self._narrow(world_from_body[0], zip(rank.tolist(), body.tolist(), other.tolist()))
+
+    def first_invalid(self, qs: np.ndarray, ignore: frozenset[str] = frozenset(),
+                      order: np.ndarray | None = None) -> int | None:
+        """Index of the first configuration of ``qs`` (N, 7) radians that collides, taken in ``order`` (default:
+        0..N-1), or None when all are valid. Forward kinematics and the broad phase run for all at once."""
+        qs = np.ascontiguousarray(qs, dtype=np.float64).reshape(-1, 7)
+        ignore = ignore if isinstance(ignore, frozenset) else frozenset(ignore)
+        order = np.arange(len(qs)) if order is None else np.asarray(order)
+        for chunk in range(0, len(qs), _BATCH):
+            indices = order[chunk:chunk + _BATCH]
+            _, world_from_body, centre, low, high = self._boxes(qs[indices])
+            configuration, rank, body, other = self._candidates(world_from_body, centre, low, high, ignore)
+            if len(configuration) == 0:
+                continue
+            starts = np.flatnonzero(np.r_[True, configuration[1:] != configuration[:-1]])
+            ends = np.r_[starts[1:], len(configuration)]
+            rank, body, other = rank.tolist(), body.tolist(), other.tolist()
+            for start, end in zip(starts, ends):  # configurations in the given order; those without pairs are free
+                n = configuration[start]
+                if self._narrow(world_from_body[n], zip(rank[start:end], body[start:end], other[start:end])):
+                    return int(indices[n])
         return None
+
+    def segment_samples(self, q_from: np.ndarray, q_to: np.ndarray, max_step_m: float = SEGMENT_STEP_M) -> int:
+        """How many steps the straight joint-space segment needs so that no point of the robot or the held part
+        moves more than ``max_step_m`` (metres) between two checked configurations (bound from
+        :attr:`sweep_radii_m`)."""
+        sweep = float(np.abs(np.asarray(q_to, dtype=np.float64) - q_from) @ self.sweep_radii_m)
+        return max(1, int(np.ceil(sweep / max_step_m)))
+
+    def segment_valid(self, q_from: np.ndarray, q_to: np.ndarray, ignore: frozenset[str] = frozenset(),
+                      max_step_m: float = SEGMENT_STEP_M) -> bool:
+        """Whether the straight joint-space segment from ``q_from`` to ``q_to`` (7,) radians is free: ``q_to`` and
+        the configurations in between, spaced so that no point of the robot or the held part moves more than
+        ``max_step_m`` between checks, checked coarse to fine. ``q_from`` is taken as valid (checked by the
+        caller, as OMPL's motion validators assume)."""
+        q_from = np.asarray(q_from, dtype=np.float64)
+        q_to = np.asarray(q_to, dtype=np.float64)
+        steps = self.segment_samples(q_from, q_to, max_step_m)
+        fractions = np.arange(1, steps + 1) / steps
+        qs = q_from + fractions[:, None] * (q_to - q_from)
+        order = np.concatenate([[steps - 1], _bisection_order(steps - 1)])  # the end first, then inside
+        return self.first_invalid(qs, ignore, order) is None
 
     def first_collision(self, q: np.ndarray, ignore: frozenset[str] = frozenset()) -> Collision | None:
         """The first collision at arm configuration ``q`` (7,) radians, or None when it is valid. Obstacles

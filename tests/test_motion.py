@@ -51,3 +51,38 @@ def test_typed_failures():
     with pytest.raises(MotionPlanningError) as info:
         plan_joint_path(checker.is_valid, home, home, LOWER, UPPER, MotionSettings(planner="Magic"))
     assert info.value.kind == "invalid_request"
+
+
+def test_plans_around_a_wall_with_segment_checks():
+    checker = world_with_wall()
+    home = np.array(load_scene().robot.home_q)
+    start, goal = home.copy(), home.copy()
+    start[0], goal[0] = 0.8, -0.8
+    calls = []
+
+    def segment_valid(q_from, q_to):
+        calls.append(1)
+        return checker.segment_valid(q_from, q_to)
+
+    path = plan_joint_path(checker.is_valid, start, goal, LOWER, UPPER, MotionSettings(time_limit_s=20.0),
+                           segment_valid=segment_valid)
+    assert len(calls) > 1  # the straight swing and then the planner's edges went through it
+    np.testing.assert_allclose(path[[0, -1]], [start, goal])
+    for a, b in zip(path[:-1], path[1:]):  # an independent dense check: every 2 mrad per joint
+        assert straight_line_valid(checker.is_valid, a, b, step_rad=0.002)
+
+
+def test_segment_check_decides_the_edges():
+    # every configuration is valid, but no edge may cross joint 1 = 0: there is no path
+    start, goal = np.zeros(7), np.zeros(7)
+    start[0], goal[0] = -0.5, 0.5
+
+    def segment_valid(q_from, q_to):
+        return bool(np.sign(q_from[0]) == np.sign(q_to[0]))
+
+    with pytest.raises(MotionPlanningError) as info:
+        plan_joint_path(lambda q: True, start, goal, LOWER, UPPER, MotionSettings(time_limit_s=0.3),
+                        segment_valid=segment_valid)
+    assert info.value.kind == "timeout"
+    path = plan_joint_path(lambda q: True, start, goal, LOWER, UPPER, MotionSettings(time_limit_s=0.3))
+    assert len(path) == 2  # without it the straight line is taken

@@ -15,6 +15,7 @@ from planning.robot_collision import (
     ARM_JOINTS,
     BASE_LINK,
     FINGER_JOINTS,
+    Collision,
     RobotCollisionChecker,
 )
 
@@ -179,3 +180,60 @@ def test_finger_opening_moves_the_fingers():
     assert hit is not None and hit.a in ("panda_leftfinger", "panda_rightfinger") and hit.b == "sliver"
     # the TCP does not depend on the opening, and FK stays exact after the change
     np.testing.assert_allclose(checker.world_from_tcp(q), world_from_tcp, atol=1e-12)
+
+
+def test_batch_answers_match_single_queries():
+    world = cluttered_world()
+    checker = RobotCollisionChecker(np.eye(4), world)
+    rng = np.random.default_rng(5)
+    home = np.array(load_scene().robot.home_q)
+    configurations = home + rng.normal(scale=0.6, size=(120, 7))
+    single = np.array([checker.is_valid(q) for q in configurations])
+    assert 0 < single.sum() < len(single)
+    for start in range(0, 120, 10):
+        chunk = configurations[start:start + 10]
+        expected = None if single[start:start + 10].all() else int(np.argmin(single[start:start + 10]))
+        assert checker.first_invalid(chunk) == expected
+    order = np.arange(120)[::-1]  # the first invalid one in the order given
+    assert checker.first_invalid(configurations, order=order) == int(np.flatnonzero(~single)[-1])
+
+
+def test_segment_spacing_bounds_how_far_any_point_moves():
+    checker = RobotCollisionChecker(np.eye(4), {})
+    checker.hold(ConvexPart.from_mesh("plank", trimesh.creation.box([0.4, 0.03, 0.03])), np.eye(4), opening_m=0.03)
+    rng = np.random.default_rng(2)
+    lower = np.array([-2.9, -1.8, -2.9, -3.0, -2.9, 0.0, -2.9])
+    upper = np.array([2.9, 1.8, 2.9, -0.1, 2.9, 3.7, 2.9])
+    box = trimesh.creation.box([0.4, 0.03, 0.03]).vertices  # corners of the held plank, part frame = TCP frame
+    for _ in range(6):
+        q_from, q_to = rng.uniform(lower, upper), rng.uniform(lower, upper)
+        steps = checker.segment_samples(q_from, q_to, max_step_m=0.02)
+        fine = q_from + np.linspace(0.0, 1.0, 10 * steps + 1)[:, None] * (q_to - q_from)
+        # points of the hand and of the plank, from the URDF chain: farthest travel between two checked samples
+        points = []
+        for q in fine:
+            world_from_tcp = checker.world_from_tcp(q)
+            points.append(box @ world_from_tcp[:3, :3].T + world_from_tcp[:3, 3])
+        points = np.array(points)
+        travel = np.linalg.norm(np.diff(points, axis=0), axis=2).reshape(steps, 10, -1).sum(axis=1)
+        assert 0.002 < travel.max() <= 0.02  # bounded, and not absurdly loose
+
+
+def test_segment_check_finds_a_thin_foil_that_a_coarse_check_misses():
+    home = np.array(load_scene().robot.home_q)
+    checker = RobotCollisionChecker(np.eye(4), {})
+    # a 1 x 0.3 x 1 cm foil where the left fingertip passes when joint 1 is at 0.075 rad
+    at = home.copy()
+    at[0] = 0.075
+    world_from_foil = np.eye(4)
+    world_from_foil[:3, 3] = checker.world_from_tcp(at)[:3, :3] @ [0.0, 0.04, 0.0] + checker.world_from_tcp(at)[:3, 3]
+    foil = ConvexPart.from_mesh("foil", trimesh.creation.box([0.01, 0.003, 0.01]))
+    checker.set_obstacles({"foil": (foil, world_from_foil)})
+    assert checker.first_collision(at) == Collision("panda_leftfinger", "foil")
+    left, right = home.copy(), home.copy()
+    left[0], right[0] = 0.365, -0.335  # across the foil: the fingers touch it at 0.07..0.13 and -0.20..-0.14 rad
+    coarse = [left + (right - left) * t for t in np.linspace(0.0, 1.0, 8)]  # every 0.1 rad: all free
+    assert all(checker.is_valid(q) for q in coarse)
+    assert not checker.segment_valid(left, right)
+    assert checker.segment_valid(left, right, ignore=frozenset({"foil"}))
+    assert checker.segment_valid(left, left + 0.2 * (right - left))  # the part of the swing before the foil
