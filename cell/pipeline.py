@@ -106,20 +106,23 @@ class Pipeline:
                          fastened_to=list(step.fastened_to))
         self.console.say("    order: " + " > ".join(sequence.order))
 
-        bar = self.console.bar(len(self.target.parts), "part")
-        current = {"stage": None}
+        bars = []
 
         def on_stage(name: str) -> None:
+            for bar in bars:
+                bar.close()
+            bars.clear()
             index = ("kitting", "motion").index(name) + 4
-            if current["stage"] is None or name != current["stage"]:
-                detail = {"kitting": "stable poses, grasps valid at pick and target",
-                          "motion": "OMPL paths, straight approaches, Ruckig timing"}[name]
-                self.console.say(f"[{index}/8] {name}: {detail}")
-            current["stage"] = name
+            detail = {"kitting": "stable poses on pedestals, a grasp valid at the pick and at the target",
+                      "motion": "OMPL paths, straight approaches and insertions, Ruckig timing"}[name]
+            self.console.say(f"[{index}/8] {name}: {detail}")
+            if name == "motion":
+                bars.append(self.console.bar(len(self.target.parts), "part"))
 
         def progress(fraction: float) -> None:
-            bar.n = round(fraction * bar.total)
-            bar.refresh()
+            if bars:
+                bars[0].n = round(fraction * bars[0].total)
+                bars[0].refresh()
 
         try:
             self.plan = plan_cell(self.scene, self.target, sequence, seed=self.args.seed,
@@ -129,7 +132,8 @@ class Pipeline:
             self.console.stage_seconds.update(exc.seconds)
             raise StageFailed(EXIT_PLANNING, exc.stage, str(exc), exc.part) from exc
         finally:
-            bar.close()
+            for bar in bars:
+                bar.close()
         for name in ("kitting", "motion", "timing"):
             self.console.stage_seconds[name] = self.plan.seconds.get(name, 0.0)
         self.report["world_from_assembly"] = pose_json(self.plan.world_from_assembly)
@@ -141,8 +145,8 @@ class Pipeline:
             self.entries[slot.part]["grasp"] = {"part_from_tcp": pose_json(slot.grasp.part_from_tcp),
                                                 "width_m": slot.grasp.width_m, "opening_m": slot.grasp.opening_m}
         self.report["trajectory_duration_s"] = self.plan.program.duration_s
-        self.console.say(f"[6/8] timing: robot program {self.plan.program.duration_s:.1f} s, checked against "
-                         "the Panda's limits")
+        self.console.say(f"[6/8] timing: a {self.plan.program.duration_s:.1f} s robot program, within the Panda's "
+                         "joint limits")
         self._check_limits()
         return self._simulate()
 
@@ -166,8 +170,9 @@ class Pipeline:
                  for t in plan.tasks]
         static = [StaticBody(o.name, o.mesh, o.world_from_obstacle) for o in plan.static]
         settings = SimSettings(record_every_s=None if self.args.no_animation else 0.25)
-        bar = self.console.bar(100, "%")
-        with self.console.stage("simulation", f"PyBullet physics, {plan.program.duration_s:.0f} s of robot motion"):
+        with self.console.stage("simulation", f"PyBullet physics at {settings.rate_hz:.0f} Hz, "
+                                              f"{plan.program.duration_s:.0f} s of robot motion"):
+            bar = self.console.bar(100, "%")
             try:
                 self.simulation = simulate_program(plan.program, parts, static, self.scene.robot.world_from_base,
                                                    settings, progress=lambda f: _advance(bar, f))
