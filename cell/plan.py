@@ -33,6 +33,7 @@ PANDA_REACH_M = 0.855  # from the shoulder (joint 2) to the flange, fully stretc
 SHOULDER_HEIGHT_M = 0.333
 HAND_LENGTH_M = 0.21  # flange to the TCP between the fingertips
 NEAR_TARGET_M = 0.25  # placed parts farther than this from a part's target cannot touch the hand placing it
+SELF = "the part itself"  # its name among the obstacles of its own reach checks
 
 
 class PlanningFailed(RuntimeError):
@@ -164,10 +165,14 @@ class _KitReach(Reach):
             tcp = self.targets[part] @ grasp.part_from_tcp
             pre = Pose(tcp.position - self.insertion[part] * INSERTION_M, tcp.quat_wxyz)
             retreat = Pose(tcp.position - tcp.rotation[:, 2] * APPROACH_M, tcp.quat_wxyz)
-            self.checker.set_obstacles(self._world([], self.order[:self.order.index(part)]))
+            world = self._world([], self.order[:self.order.index(part)])
+            world[SELF] = (ConvexPart.from_mesh(part, self.meshes[part]), self.targets[part].matrix())
+            self.checker.set_obstacles(world)
             self.checker.hold(None, opening_m=grasp.opening_m)
-            touching = frozenset(self.touches[part])
-            found = self._chain([tcp, pre, retreat], self.home_q, [touching, frozenset(), frozenset()])
+            # release: touching its neighbours is planned; pre-place: the part is in the hand, not at its target;
+            # end of the retreat: clear of everything, the released part included
+            touching = frozenset(self.touches[part]) | {SELF}
+            found = self._chain([tcp, pre, retreat], self.home_q, [touching, frozenset({SELF}), frozenset()])
             self.at_target_cache[key] = None if found is None else tuple(found)
         return self.at_target_cache[key]
 
@@ -178,9 +183,13 @@ class _KitReach(Reach):
         tcp = world_from_part @ grasp.part_from_tcp
         pre = Pose(tcp.position - tcp.rotation[:, 2] * APPROACH_M, tcp.quat_wxyz)
         lifted = Pose(tcp.position + np.array([0.0, 0.0, LIFT_M]), tcp.quat_wxyz)
-        self.checker.set_obstacles(self._world(list(obstacles), self.order[:self.order.index(part)]))
+        world = self._world(list(obstacles), self.order[:self.order.index(part)])
+        world[SELF] = (ConvexPart.from_mesh(part, self.meshes[part]), world_from_part.matrix())
+        self.checker.set_obstacles(world)
         self.checker.hold(None, opening_m=grasp.opening_m)
-        found = self._chain([tcp, pre, lifted], self.home_q, [frozenset()] * 3)
+        # grasp: the fingers around the part were checked by the grasp planner; pre-grasp: clear of the part;
+        # lifted: the part is in the hand
+        found = self._chain([tcp, pre, lifted], self.home_q, [frozenset({SELF}), frozenset(), frozenset({SELF})])
         return None if found is None else (tuple(found), target, grasp.opening_m)
 
     def still_clear(self, reach, obstacles) -> bool:

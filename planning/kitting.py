@@ -44,6 +44,8 @@ BOARD_THICKNESS_RATIO = 0.25  # a part thinner than this fraction of its middle 
 STACK_OVERHANG_M = 0.04  # a stacked board overhangs the one under it by this much on one side (for the fingers)
 STACK_SUPPORT_M = 0.02  # ... and keeps its centre at least this far inside the lower board's edge
 TOP_FACE_FRACTION = 0.8  # a board's flat top covers at least this fraction of its footprint
+SUPPORT_MARGIN_M = 0.003  # the centre of mass lies at least this far inside the points a part rests on
+CONTACT_HEIGHT_M = 0.001  # vertices this close to the support touch it
 CAPACITY_FRACTION = 0.75  # rectangles in a ring pack no denser than this: fail at once above it
 COMFORTABLE_FRACTION = 0.6  # places beyond this fraction of the ring's depth are tried last ...
 FAR_PENALTY = 3.0  # ... as if each metre beyond it were this many metres farther from the jig
@@ -135,6 +137,66 @@ def pedestal_for(half_extent_xy: np.ndarray, world_from_rest: Pose, height_m: fl
     size = np.maximum(extent - 2 * inset, 1e-3)
     rest_from_pedestal = Pose([0.0, 0.0, -0.5 * height_m], [1.0, 0.0, 0.0, 0.0])
     return Pedestal((float(size[0]), float(size[1]), height_m), world_from_rest @ rest_from_pedestal)
+
+
+def _inside_convex(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """Which 2-D ``points`` lie inside the convex ``polygon`` (corners in order, either direction)."""
+    edges = np.roll(polygon, -1, axis=0) - polygon
+    cross = edges[None, :, 0] * (points[:, None, 1] - polygon[None, :, 1]) \
+        - edges[None, :, 1] * (points[:, None, 0] - polygon[None, :, 0])
+    return np.all(cross >= -1e-12, axis=1) | np.all(cross <= 1e-12, axis=1)
+
+
+def _clip(polygon: np.ndarray, convex: np.ndarray) -> np.ndarray:
+    """``polygon`` (2-D corners) clipped to the ``convex`` polygon (Sutherland-Hodgman)."""
+    orientation = np.sign(np.cross(convex[1] - convex[0], convex[2] - convex[1])) or 1.0
+    out = polygon
+    for a, b in zip(convex, np.roll(convex, -1, axis=0)):
+        if len(out) == 0:
+            break
+        edge = b - a
+        side = orientation * (edge[0] * (out[:, 1] - a[1]) - edge[1] * (out[:, 0] - a[0]))
+        kept = []
+        for k in range(len(out)):
+            j = (k + 1) % len(out)
+            if side[k] >= 0:
+                kept.append(out[k])
+            if (side[k] >= 0) != (side[j] >= 0):
+                t = side[k] / (side[k] - side[j])
+                kept.append(out[k] + t * (out[j] - out[k]))
+        out = np.array(kept).reshape(-1, 2)
+    return out
+
+
+def rests_stably(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, support_rest_xy: np.ndarray,
+                 margin_m: float = SUPPORT_MARGIN_M) -> bool:
+    """Whether the part, lying in its rest pose (rest frame: lowest point at z = 0), stands on a support whose top
+    is the convex polygon ``support_rest_xy`` (rest frame x-y, at z = 0): the points where it touches the
+    support surround its centre of mass with ``margin_m`` to spare. (A stable pose of the part's hull is not
+    enough on a pedestal inset from the footprint, nor for parts whose underside is not flat.)"""
+    rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
+    low = rested[:, 2] < CONTACT_HEIGHT_M
+    support = np.asarray(support_rest_xy, dtype=np.float64)
+    # where the part touches the support: its lowest vertices over the support, and its lowest faces clipped
+    # to the support's outline
+    pieces = [rested[low, :2][_inside_convex(rested[low, :2], support)]]
+    for face in mesh.faces[np.all(low[mesh.faces], axis=1)]:
+        clipped = _clip(rested[face, :2], support)
+        if len(clipped):
+            pieces.append(clipped)
+    touching = np.concatenate(pieces)
+    if len(touching) < 3:
+        return False
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = touching[ConvexHull(touching).vertices]
+    except QhullError:  # collinear: a knife edge
+        return False
+    com = mesh.center_mass if mesh.is_watertight and mesh.volume > 0 else mesh.centroid
+    com_rest = (rest_from_part[:3, :3] @ com + rest_from_part[:3, 3])[:2]
+    probes = com_rest + margin_m * np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]])
+    return bool(np.all(_inside_convex(probes, hull)))
 
 
 def _yaw(angle_rad: float) -> Pose:
@@ -319,8 +381,10 @@ class _Layout:
             yaw = long_yaw if long_is_x else long_yaw - np.pi / 2  # the rest frame's long axis along long_yaw
             world_from_rest = Pose([xy[0], xy[1], self.area.table_z_m + self.area.pedestal_height_m],
                                    [1, 0, 0, 0]) @ _yaw(yaw)
-            yield (world_from_rest, _corners(xy, long_yaw, half_ring),
-                   pedestal_for(mesh_half, world_from_rest, self.area.pedestal_height_m), None)
+            pedestal = pedestal_for(mesh_half, world_from_rest, self.area.pedestal_height_m)
+            if not self._supported(name, rest_from_part, pedestal):
+                return  # the same in every place: try the next rest pose
+            yield world_from_rest, _corners(xy, long_yaw, half_ring), pedestal, None
 
     def _stack_places(self, name: str, rest_from_part: np.ndarray):
         """On top of a board assembled later whose top is flat and free, overhanging it on one side by
@@ -352,7 +416,16 @@ class _Layout:
                     continue
                 yaw = base_long_yaw if long_is_x else base_long_yaw - np.pi / 2
                 world_from_rest = Pose([xy[0], xy[1], top_z], [1, 0, 0, 0]) @ _yaw(yaw)
+                top_rest = world_from_rest.inverse().apply(np.column_stack([
+                    _corners(base_centre, base_long_yaw, base_half), np.full(4, top_z)]))[:, :2]
+                if not rests_stably(self.meshes[name], rest_from_part, top_rest):
+                    continue
                 yield world_from_rest, corners, None, base
+
+    def _supported(self, name: str, rest_from_part: np.ndarray, pedestal: Pedestal) -> bool:
+        half = 0.5 * np.array(pedestal.size_m[:2])
+        top = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * half  # the pedestal is centred in the rest frame
+        return rests_stably(self.meshes[name], rest_from_part, top)
 
     def _stack_of(self, slot: KittingSlot) -> set[str]:
         members = {slot.part}
