@@ -71,6 +71,9 @@ class Pipeline:
         except PredictionError as exc:
             raise BadInput(str(exc)) from exc
         self.report["perception"] = prediction.summary()
+        for name in self.parts.names:
+            self.entries[name]["predicted_camera_from_part"] = pose_json(prediction.camera_from_part[name])
+            self.entries[name]["predicted_assembly_from_part"] = pose_json(prediction.assembly_from_part[name])
         return dict(prediction.assembly_from_part)
 
     def _repair(self, assembly: Assembly) -> Assembly:

@@ -1,0 +1,258 @@
+"""``python -m cell.run`` end to end: a full headless assembly with the real planner and simulator, the exported
+trajectory checked against the Panda's limits by code independent of the exporter, and every bad input."""
+
+import csv
+import json
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pybullet_data
+import pytest
+import trimesh
+from PIL import Image
+
+from cell.run import main
+from perception.synth import generate
+from planning.assembly import write_assembly
+
+# Franka's published limits, written out here on purpose (not imported from the code under test)
+VELOCITY = [2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61]
+ACCELERATION = [15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0]
+
+
+@pytest.fixture(scope="module")
+def small_chair(tmp_path_factory) -> Path:
+    """A procedural chair of three parts (mixed level: seat with legs and back, and two arms)."""
+    assembly = generate("chair", "mixed", np.random.default_rng([3, 3]), "small_chair")
+    assert len(assembly.parts) == 3
+    return write_assembly(assembly, tmp_path_factory.mktemp("objects") / "small_chair")
+
+
+@pytest.fixture(scope="module")
+def run_with_poses(small_chair, tmp_path_factory):
+    out = tmp_path_factory.mktemp("runs") / "chair"
+    result = subprocess.run([sys.executable, "-m", "cell.run", "--parts", str(small_chair / "parts"), "--poses",
+                             str(small_chair / "assembly.json"), "--out", str(out), "--seed", "0"],
+                            capture_output=True, text=True, timeout=900)
+    return result, out
+
+
+def urdf_position_limits() -> tuple[np.ndarray, np.ndarray]:
+    root = ET.parse(Path(pybullet_data.getDataPath()) / "franka_panda" / "panda.urdf").getroot()
+    lower, upper = [], []
+    for k in range(1, 8):
+        joint = root.find(f"joint[@name='panda_joint{k}']/limit")
+        lower.append(float(joint.get("lower")))
+        upper.append(float(joint.get("upper")))
+    return np.array(lower), np.array(upper)
+
+
+def test_full_assembly_with_given_poses_succeeds(run_with_poses):
+    result, out = run_with_poses
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["animation.gif", "overview.png", "program.json",
+                                                     "report.json", "trajectory.csv"]
+    report = json.loads((out / "report.json").read_text())
+    assert report["success"] and report["exit_code"] == 0 and report["failure"] is None
+    assert sorted(p["order"] for p in report["parts"]) == [1, 2, 3]
+    for part in report["parts"]:
+        assert part["within_tolerance"], part
+        assert part["position_error_m"] <= 0.005 and part["rotation_error_deg"] <= 3.0
+        assert part["grasp"]["width_m"] <= 0.08
+    assert set(report["stages"]) == {"perception", "repair", "sequence", "kitting", "motion", "timing",
+                                     "simulation", "export"}
+    assert "success" in result.stdout and "seat" in result.stdout  # the summary table names the parts
+    image = Image.open(out / "overview.png")
+    assert image.size[0] == 2 * image.size[1]  # target | simulated result (no input image with --poses)
+    assert Image.open(out / "animation.gif").n_frames > 10
+
+
+def test_exported_trajectory_respects_the_panda_limits(run_with_poses):
+    _, out = run_with_poses
+    with open(out / "trajectory.csv", newline="") as handle:
+        rows = list(csv.reader(handle))
+    header, table = rows[0], np.array(rows[1:], dtype=np.float64)
+    joints = [f"panda_joint{k}" for k in range(1, 8)]
+    assert header == ["t"] + [f"q_{j}" for j in joints] + [f"qd_{j}" for j in joints] + [
+        f"qdd_{j}" for j in joints] + ["gripper_width"]
+    t, q, qd, qdd, width = table[:, 0], table[:, 1:8], table[:, 8:15], table[:, 15:22], table[:, 22]
+    np.testing.assert_allclose(np.diff(t), 1e-3, atol=1e-6)  # 1 kHz
+    lower, upper = urdf_position_limits()
+    assert np.all(q >= lower - 1e-6) and np.all(q <= upper + 1e-6)
+    assert np.all(np.abs(qd) <= np.array(VELOCITY) * (1 + 1e-6))
+    assert np.all(np.abs(qdd) <= np.array(ACCELERATION) * (1 + 1e-6))
+    assert np.all((width >= 0) & (width <= 0.08 + 1e-9))
+    # the velocities are the derivative of the positions (the columns are one consistent trajectory)
+    np.testing.assert_allclose(np.diff(q, axis=0) / 1e-3, 0.5 * (qd[1:] + qd[:-1]), atol=2e-3)
+    program = json.loads((out / "program.json").read_text())
+    assert program["joint_names"] == joints
+    motions = [s for s in program["steps"] if s["type"] == "motion"]
+    assert motions and all(s["trajectory"]["joint_names"] == joints for s in motions)
+    point = motions[0]["trajectory"]["points"][-1]
+    assert set(point) == {"positions", "velocities", "accelerations", "time_from_start"}
+    assert set(point["time_from_start"]) == {"sec", "nanosec"}
+    total = sum(s["duration_s"] for s in program["steps"])
+    assert total == pytest.approx(t[-1], abs=2e-3)
+
+
+# --- bad input: exit 2, the culprit named, nothing written --------------------------------------------------
+
+
+def _png(path: Path, mode: str, size: tuple[int, int]) -> Path:
+    Image.new(mode, size).save(path)
+    return path
+
+
+def _parts_folder(root: Path, meshes: dict[str, trimesh.Trimesh]) -> Path:
+    folder = root / "parts"
+    folder.mkdir(parents=True)
+    for name, mesh in meshes.items():
+        mesh.export(folder / f"{name}.obj")
+    return folder
+
+
+def _poses(root: Path, entries: list[dict]) -> Path:
+    path = root / "assembly.json"
+    path.write_text(json.dumps({"name": "x", "units": "m", "parts": entries}))
+    return path
+
+
+def _pose_entry(name: str, position=(0.0, 0.0, 0.05), quat=(1.0, 0.0, 0.0, 0.0)) -> dict:
+    return {"name": name, "mesh": f"parts/{name}.obj", "pose": {"position": list(position), "quat_wxyz": list(quat)}}
+
+
+BOX = trimesh.creation.box([0.1, 0.05, 0.02])
+
+
+def bad_inputs(tmp: Path, chair: Path) -> dict[str, tuple[list[str], str]]:
+    """case -> (arguments, words the error message must contain)."""
+    parts, poses = str(chair / "parts"), str(chair / "assembly.json")
+    cases = {}
+    cases["missing image"] = (["--image", str(tmp / "nope.png"), "--parts", parts], "nope.png: image file does not")
+    (tmp / "text.png").write_text("not an image")
+    cases["unreadable image"] = (["--image", str(tmp / "text.png"), "--parts", parts], "not a readable image")
+    cases["grayscale image"] = (["--image", str(_png(tmp / "gray.png", "L", (224, 224))), "--parts", parts],
+                                "grayscale")
+    cases["RGBA image"] = (["--image", str(_png(tmp / "rgba.png", "RGBA", (224, 224))), "--parts", parts],
+                           "alpha channel")
+    cases["non-square image"] = (["--image", str(_png(tmp / "wide.png", "RGB", (300, 224))), "--parts", parts],
+                                 "300x224; it must be square")
+    cases["huge image"] = (["--image", str(_png(tmp / "huge.png", "RGB", (5000, 5000))), "--parts", parts],
+                           "larger than 4096x4096")
+    cases["missing parts folder"] = (["--parts", str(tmp / "none"), "--poses", poses], "parts folder does not exist")
+    (tmp / "empty").mkdir()
+    cases["empty parts folder"] = (["--parts", str(tmp / "empty"), "--poses", poses], "parts folder is empty")
+    junk = _parts_folder(tmp / "junk", {"a": BOX})
+    (junk / "notes.txt").write_text("hello")
+    cases["non-mesh file"] = (["--parts", str(junk), "--poses", poses], "notes.txt: not a mesh file")
+    corrupt = _parts_folder(tmp / "corrupt", {"a": BOX})
+    (corrupt / "b.stl").write_bytes(b"solid \x00\x01garbage")
+    cases["corrupt mesh"] = (["--parts", str(corrupt), "--poses", poses], "part 'b'")
+    empty_mesh = _parts_folder(tmp / "emptymesh", {"a": BOX})
+    (empty_mesh / "b.obj").write_text("# nothing\n")
+    cases["empty mesh"] = (["--parts", str(empty_mesh), "--poses", poses], "part 'b'")
+    flat = _parts_folder(tmp / "flat", {"a": BOX})
+    (flat / "b.obj").write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")
+    cases["degenerate mesh"] = (["--parts", str(flat), "--poses", poses], "degenerate")
+    many = _parts_folder(tmp / "many", {f"p{k:02d}": BOX for k in range(21)})
+    cases["more than 20 parts"] = (["--parts", str(many), "--poses", poses], "21 parts, more than the 20")
+    millimetres = _parts_folder(tmp / "mm", {"a": trimesh.creation.box([400.0, 300.0, 20.0])})
+    cases["parts in millimetres"] = (["--parts", str(millimetres), "--poses", poses], "--units mm")
+    one = _parts_folder(tmp / "one", {"a": BOX})
+    cases["NaN pose"] = (["--parts", str(one), "--poses", str(_poses(tmp / "one", [
+        {**_pose_entry("a"), "pose": {"position": [0, float("nan"), 0], "quat_wxyz": [1, 0, 0, 0]}}]))],
+        "NaN")
+    (tmp / "q").mkdir()
+    cases["non-unit quaternion"] = (["--parts", str(one), "--poses", str(_poses(tmp / "q", [
+        _pose_entry("a", quat=(1.0, 1.0, 0.0, 0.0))]))], "not a unit quaternion")
+    two = _parts_folder(tmp / "two", {"a": BOX, "b": BOX})
+    cases["missing pose"] = (["--parts", str(two), "--poses", str(_poses(tmp / "two", [_pose_entry("a")]))],
+                             "no pose for part(s) b")
+    (tmp / "extra").mkdir()
+    cases["extra pose"] = (["--parts", str(one), "--poses", str(_poses(tmp / "extra", [
+        _pose_entry("a"), _pose_entry("z")]))], "pose(s) for z")
+    (tmp / "far").mkdir()
+    tall = _parts_folder(tmp / "tall", {"pole": trimesh.creation.box([0.05, 0.05, 0.1])})
+    cases["target out of reach"] = (["--parts", str(tall), "--poses", str(_poses(tmp / "far", [
+        _pose_entry("pole", position=(0.0, 0.0, 1.6))]))], "out of the Panda's reach")
+    return cases
+
+
+CASES = ["missing image", "unreadable image", "grayscale image", "RGBA image", "non-square image", "huge image",
+         "missing parts folder", "empty parts folder", "non-mesh file", "corrupt mesh", "empty mesh",
+         "degenerate mesh", "more than 20 parts", "parts in millimetres", "NaN pose", "non-unit quaternion",
+         "missing pose", "extra pose", "target out of reach"]
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_bad_input_is_named_and_nothing_is_written(case, small_chair, tmp_path, capsys):
+    arguments, words = bad_inputs(tmp_path, small_chair)[case]
+    out = tmp_path / "out"
+    assert main(arguments + ["--out", str(out), "--quiet"]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("error: ") and words in error, error
+    assert "Traceback" not in error
+    assert not out.exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out")]  # no half-written sibling
+
+
+def test_an_output_folder_of_something_else_is_not_overwritten(small_chair, tmp_path, capsys):
+    out = tmp_path / "precious"
+    out.mkdir()
+    (out / "thesis.tex").write_text("keep me")
+    assert main(["--parts", str(small_chair / "parts"), "--poses", str(small_chair / "assembly.json"),
+                 "--out", str(out), "--quiet"]) == 2
+    assert "does not hold an earlier run" in capsys.readouterr().err
+    assert (out / "thesis.tex").read_text() == "keep me"
+
+
+def test_neither_image_nor_poses_is_a_usage_error(small_chair, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--parts", str(small_chair / "parts")])
+    assert exit_info.value.code == 2
+    assert "give --image" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory) -> Path:
+    """A real network, trained for two steps on four procedural tables (tiny config)."""
+    from perception.dataset.build import BuildConfig, build
+    from perception.train.checkpoint import MODEL
+    from perception.train.cli import main as train_main
+
+    root = tmp_path_factory.mktemp("tiny")
+    build(BuildConfig(category="chair", level="mixed", count=4, views=1, seed=3), root / "data", progress=False)
+    assert train_main(["--config", "tiny", "--data", str(root / "data"), "--out", str(root / "run"),
+                       "--max-steps", "2", "--no-progress"]) == 0
+    return root / "run" / MODEL
+
+
+def test_full_run_from_the_picture(small_chair, tiny_checkpoint, tmp_path):
+    """Perception feeds the planner: the poses come from the network (a barely trained one here, so the plan
+    may fail; what is checked is that every stage runs and reports, and nothing is half-written)."""
+    from cell.render import render_assembly
+    from planning.assembly import read_assembly
+
+    view = render_assembly(read_assembly(small_chair), np.random.default_rng(0))
+    image = tmp_path / "chair.png"
+    Image.fromarray(view.rgb).save(image)
+    out = tmp_path / "out"
+    code = main(["--image", str(image), "--parts", str(small_chair / "parts"), "--checkpoint",
+                 str(tiny_checkpoint), "--out", str(out), "--quiet", "--no-animation"])
+    assert code in (0, 3, 4)
+    report = json.loads((out / "report.json").read_text())
+    assert report["exit_code"] == code and report["success"] == (code == 0)
+    assert report["perception"]["model"] == "ours"
+    assert report["repair"]["applied"] is True
+    for part in report["parts"]:
+        for key in ("predicted_camera_from_part", "predicted_assembly_from_part", "target_assembly_from_part"):
+            assert np.isfinite(part[key]["position"]).all()
+            assert abs(np.linalg.norm(part[key]["quat_wxyz"]) - 1.0) < 1e-6
+    if code == 3:
+        assert report["failure"]["stage"] in ("sequence", "kitting", "motion", "timing")
+        assert not (out / "trajectory.csv").exists()
+    width, height = Image.open(out / "overview.png").size  # input image | target | simulated result (if any)
+    assert width == (2 if code == 3 else 3) * height
