@@ -1,12 +1,17 @@
 """Time parameterisation of joint-space paths with Ruckig (community edition), jerk-limited.
 
-Ruckig's community edition times one state-to-state motion; multi-waypoint paths are timed segment by segment
-(its waypoint API needs the cloud). The motion does not stop at every waypoint: each interior waypoint gets a
-via velocity along the bisector of its two segments, scaled down with the turn angle (zero at a right angle or
-more), and each segment is timed with phase synchronisation so that, when the boundary velocities are parallel
-to the segment, the motion stays on the straight joint-space segment. The caller re-checks the timed motion for
-collisions densely (:func:`first_invalid_sample`) and, where a blend leaves the planned path and collides, stops
-at those waypoints instead (:func:`time_path` does this with ``is_valid``).
+Ruckig's community edition times one state-to-state motion; multi-waypoint paths are timed piece by piece (its
+waypoint API needs the cloud). The motion does not stop at every waypoint: it follows each straight joint-space
+segment exactly (a one-dimensional Ruckig profile of the arc length, :class:`StraightSegment`) and rounds each
+interior waypoint with a short blend: from a point ``distance`` before the waypoint, moving along the incoming
+segment at ``speed``, to the point ``distance`` after it, moving along the outgoing segment at the same speed (a
+time-synchronised Ruckig motion). Per waypoint, the blend distance and speed are chosen from a few candidates to
+make the motion quickest while the blend stays within ``max_deviation_rad`` of the planned path
+(:func:`plan_corners`). The caller re-checks the timed motion for collisions densely (:func:`first_invalid_sample`)
+and, where a blend collides, blends closer to the waypoint and finally stops there (:func:`time_path` does this
+with ``is_valid`` or ``first_invalid``).
+
+Units: radians, seconds; limits per joint (rad/s, rad/s^2, rad/s^3).
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from ruckig import InputParameter, Result, Ruckig, Synchronization
+from ruckig import InputParameter, Result, Ruckig, RuckigError, Synchronization
 from ruckig import Trajectory as RuckigTrajectory
 
 
@@ -28,7 +33,9 @@ class JointLimits:
 
 @dataclass
 class TimedPath:
-    """A timed joint motion: Ruckig segments back to back. ``via_velocities`` (K, dof) at the waypoints."""
+    """A timed joint motion: Ruckig pieces back to back. ``waypoints`` (K, dof) are the pieces' end points (the
+    planned waypoints where the motion stops there, the ends of each blend where it does not) and
+    ``via_velocities`` (K, dof) the velocities there; ``durations`` (K-1,) seconds per piece."""
 
     waypoints: np.ndarray
     via_velocities: np.ndarray
@@ -57,31 +64,151 @@ class TimedPath:
         return q, qd, qdd
 
 
-def via_velocities(waypoints: np.ndarray, limits: JointLimits, speed_fraction: float = 0.6) -> np.ndarray:
-    """Velocities at the waypoints: zero at the ends; inside, along the bisector of the two segment directions
-    with a magnitude that falls from ``speed_fraction`` of the limits (straight on) to zero (turns of 90 degrees
-    or more), and never more than what the shorter neighbouring segment can brake from."""
-    count, dof = waypoints.shape
-    velocities = np.zeros((count, dof))
-    for k in range(1, count - 1):
-        incoming, outgoing = waypoints[k] - waypoints[k - 1], waypoints[k + 1] - waypoints[k]
-        n_in, n_out = np.linalg.norm(incoming), np.linalg.norm(outgoing)
-        if n_in < 1e-9 or n_out < 1e-9:
+MAX_DEVIATION_RAD = 0.05  # how far (joint-space distance) a blend may leave the planned path
+SPEED_FRACTIONS = (1.0, 0.8, 0.6, 0.45, 0.3, 0.2, 0.1)  # blend speeds tried, of the fastest along both segments
+DISTANCE_FRACTIONS = (1.0, 0.6, 0.35, 0.2, 0.1)  # blend distances tried, of half the shorter neighbouring segment
+_DEVIATION_SAMPLES = 12  # samples per blend when measuring how far it leaves the path
+_SWEEPS = 2  # coordinate-descent passes over the waypoints
+
+
+@dataclass(frozen=True)
+class Corner:
+    """How the motion passes an interior waypoint: along a blend that starts ``distance_rad`` before it on the
+    incoming segment and ends ``distance_rad`` after it on the outgoing one, at ``speed`` (rad/s of joint-space
+    arc length) at both ends; a stop at the waypoint when ``speed`` is 0."""
+
+    distance_rad: float = 0.0
+    speed: float = 0.0
+
+    @property
+    def stops(self) -> bool:
+        return self.speed <= 0.0 or self.distance_rad <= 0.0
+
+
+STOP = Corner()
+
+
+def _directions(waypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit directions (K-1, dof) and lengths (K-1,) of the segments."""
+    steps = np.diff(waypoints, axis=0)
+    lengths = np.linalg.norm(steps, axis=1)
+    return steps / np.maximum(lengths, 1e-12)[:, None], lengths
+
+
+def _fastest(direction: np.ndarray, limits: JointLimits) -> float:
+    """The fastest arc-length speed along ``direction`` within every joint's velocity limit (a hair below: Ruckig
+    refuses a target velocity equal to its limit after rounding)."""
+    return (1.0 - 1e-6) * float(np.min(limits.velocity / np.maximum(np.abs(direction), 1e-12)))
+
+
+def _breakpoints(waypoints: np.ndarray, corners: Sequence[Corner]) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """The points where pieces meet (P, dof), the velocities there (P, dof) and, per piece, the index of the
+    corner it blends (or -1 for a straight piece). ``corners[k]`` belongs to waypoint k (ends ignored)."""
+    units, _ = _directions(waypoints)
+    points, velocities, blends = [waypoints[0]], [np.zeros(waypoints.shape[1])], []
+    for k in range(1, len(waypoints) - 1):
+        corner = corners[k]
+        if corner.stops:
+            points.append(waypoints[k])
+            velocities.append(np.zeros(waypoints.shape[1]))
+            blends.append(-1)
             continue
-        u_in, u_out = incoming / n_in, outgoing / n_out
-        cos_turn = float(np.dot(u_in, u_out))
-        if cos_turn <= 0.0:
-            continue
-        direction = u_in + u_out
-        direction /= np.linalg.norm(direction)
-        # fastest speed along `direction` within every joint's velocity limit
-        speed = speed_fraction * cos_turn * float(np.min(limits.velocity / np.maximum(np.abs(direction), 1e-12)))
-        # and slow enough to stop within the shorter segment (v^2 <= a * d, per joint, with margin)
-        shortest = min(n_in, n_out)
-        brake = float(np.min(np.sqrt(limits.acceleration * shortest * np.maximum(np.abs(direction), 1e-12))
-                             / np.maximum(np.abs(direction), 1e-12)))
-        velocities[k] = direction * min(speed, 0.5 * brake)
-    return velocities
+        points += [waypoints[k] - corner.distance_rad * units[k - 1], waypoints[k] + corner.distance_rad * units[k]]
+        velocities += [corner.speed * units[k - 1], corner.speed * units[k]]
+        blends += [-1, k]
+    points.append(waypoints[-1])
+    velocities.append(np.zeros(waypoints.shape[1]))
+    blends.append(-1)
+    return np.array(points), np.array(velocities), blends
+
+
+def _distance_to_polyline(points: np.ndarray, polyline: Sequence[np.ndarray]) -> np.ndarray:
+    """(N,) joint-space distance (rad) from each of ``points`` (N, dof) to the polyline through ``polyline``."""
+    best = np.full(len(points), np.inf)
+    for a, b in zip(polyline[:-1], polyline[1:]):
+        direction = b - a
+        s = np.clip((points - a) @ direction / max(float(direction @ direction), 1e-12), 0.0, 1.0)
+        best = np.minimum(best, np.linalg.norm(points - a - s[:, None] * direction, axis=1))
+    return best
+
+
+def _blend_deviation(trajectory, start: np.ndarray, corner: np.ndarray, end: np.ndarray) -> float:
+    """Largest distance (rad) from samples of a blend to the path it replaces, start -> corner -> end."""
+    times = np.linspace(0.0, trajectory.duration, _DEVIATION_SAMPLES + 2)[1:-1]
+    samples = np.array([trajectory.at_time(t)[0] for t in times])
+    return float(_distance_to_polyline(samples, (start, corner, end)).max())
+
+
+def _stays_on_segment(piece) -> bool:
+    """Whether a straight piece's arc length stays within [0, length] (no overshoot past its ends)."""
+    if not isinstance(piece, StraightSegment):
+        return True
+    extrema = piece.trajectory.position_extrema[0]
+    return extrema.min >= -1e-9 and extrema.max <= piece.length + 1e-9
+
+
+def plan_corners(waypoints: np.ndarray, limits: JointLimits, max_deviation_rad: float = MAX_DEVIATION_RAD,
+                 allowed: Sequence[float] | None = None) -> list[Corner]:
+    """A :class:`Corner` per waypoint (stops at the ends): per interior waypoint, the blend distance (a fraction in
+    :data:`DISTANCE_FRACTIONS` of half the shorter neighbouring segment, at most ``allowed[k]`` when given) and
+    speed (a fraction in :data:`SPEED_FRACTIONS` of the fastest along both segments) that make the pieces around
+    it quickest while the blend stays within ``max_deviation_rad`` of the path and the straight pieces do not
+    overshoot; or a stop. Coordinate descent over the waypoints, starting from stops everywhere."""
+    waypoints = np.asarray(waypoints, dtype=np.float64)
+    count = len(waypoints)
+    units, lengths = _directions(waypoints)
+    corners = [STOP] * count
+
+    def local_cost(k: int) -> float:
+        """Duration of the pieces from waypoint k-1's blend end to waypoint k+1's blend start, inf if infeasible."""
+        first, last = max(k - 1, 0), min(k + 1, count - 1)
+        points, velocities, blends = _breakpoints(waypoints[first:last + 1], [STOP] + corners[first + 1:last] + [STOP])
+        # the window's ends: where the neighbours' blends end/start (their own blends are not part of the window)
+        if first > 0 and not corners[first].stops:
+            points[0] = waypoints[first] + corners[first].distance_rad * units[first]
+            velocities[0] = corners[first].speed * units[first]
+        if last < count - 1 and not corners[last].stops:
+            points[-1] = waypoints[last] - corners[last].distance_rad * units[last - 1]
+            velocities[-1] = corners[last].speed * units[last - 1]
+        total = 0.0
+        for i, blend in enumerate(blends):
+            try:
+                piece = _time_segment(points[i], velocities[i], points[i + 1], velocities[i + 1], limits)
+            except (ValueError, RuckigError):
+                return np.inf
+            if blend < 0 and not _stays_on_segment(piece):
+                return np.inf
+            if blend >= 0 and _blend_deviation(piece, points[i], waypoints[first + blend],
+                                               points[i + 1]) > max_deviation_rad:
+                return np.inf
+            total += piece.duration
+        return total
+
+    for _ in range(_SWEEPS):
+        for k in range(1, count - 1):
+            if lengths[k - 1] < 1e-9 or lengths[k] < 1e-9 or float(units[k - 1] @ units[k]) < -0.999:
+                continue  # a repeated waypoint or a reversal: stop there
+            room = 0.5 * min(lengths[k - 1], lengths[k])
+            if allowed is not None:
+                room = min(room, allowed[k])
+            fastest = min(_fastest(units[k - 1], limits), _fastest(units[k], limits))
+            best_corner, best = STOP, np.inf
+            for candidate in [STOP] + [Corner(room * d, fastest * f) for d in DISTANCE_FRACTIONS
+                                       for f in SPEED_FRACTIONS if room * d > 1e-6]:
+                corners[k] = candidate
+                cost = local_cost(k)
+                if cost < best - 1e-9:
+                    best_corner, best = candidate, cost
+            corners[k] = best_corner
+    return corners
+
+
+def time_corners(waypoints: np.ndarray, limits: JointLimits, corners: Sequence[Corner]) -> TimedPath:
+    """The motion along ``waypoints`` with the given corners: straight pieces and blends back to back. The
+    result's ``waypoints`` and ``via_velocities`` are the pieces' end points and the velocities there."""
+    waypoints = np.asarray(waypoints, dtype=np.float64)
+    points, velocities, _ = _breakpoints(waypoints, corners)
+    return time_waypoints(points, limits, velocities)
 
 
 class StraightSegment:
@@ -91,7 +218,7 @@ class StraightSegment:
 
     def __init__(self, q0: np.ndarray, u: np.ndarray, length: float, s_velocity: tuple[float, float],
                  limits: JointLimits) -> None:
-        self.q0, self.u = np.asarray(q0, dtype=np.float64), u
+        self.q0, self.u, self.length = np.asarray(q0, dtype=np.float64), u, float(length)
         scale = np.maximum(np.abs(u), 1e-12)
         inp = InputParameter(1)
         inp.current_position, inp.current_velocity, inp.current_acceleration = [0.0], [s_velocity[0]], [0.0]
@@ -154,42 +281,69 @@ def time_waypoints(waypoints: np.ndarray, limits: JointLimits, velocities: np.nd
     return TimedPath(waypoints, velocities, segments, np.array([s.duration for s in segments]))
 
 
-def first_invalid_sample(timed: TimedPath, is_valid: Callable[[np.ndarray], bool],
-                         step_s: float = 0.004) -> tuple[int, float] | None:
-    """(segment index, time) of the first sample (every ``step_s``) failing ``is_valid``, or None."""
+def first_invalid_sample(timed: TimedPath, is_valid: Callable[[np.ndarray], bool] | None = None,
+                         step_s: float = 0.004, first_invalid: Callable[[np.ndarray], int | None] | None = None,
+                         from_segment: int = 0) -> tuple[int, float] | None:
+    """(segment index, time) of the first sample (every ``step_s`` seconds, from the start of segment
+    ``from_segment``) failing ``is_valid``, or None. ``first_invalid(qs)``, when given, checks all samples (N, dof)
+    at once and returns the index of the first invalid one (or None), e.g.
+    :meth:`planning.robot_collision.RobotCollisionChecker.first_invalid`."""
     starts = np.concatenate([[0.0], np.cumsum(timed.durations)])
-    times = np.arange(0.0, timed.duration + step_s, step_s)
+    times = np.arange(starts[from_segment], timed.duration + step_s, step_s)
     times[-1] = min(times[-1], timed.duration)
     q, _, _ = timed.at_times(times)
-    for t, configuration in zip(times, q):
-        if not is_valid(configuration):
-            segment = int(np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(timed.segments) - 1))
-            return segment, float(t)
-    return None
+    if first_invalid is not None:
+        index = first_invalid(q)
+    else:
+        index = next((i for i, configuration in enumerate(q) if not is_valid(configuration)), None)
+    if index is None:
+        return None
+    t = float(times[index])
+    return int(np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(timed.segments) - 1)), t
+
+
+def _corner_of(timed: TimedPath, waypoints: np.ndarray, corners: Sequence[Corner], piece: int) -> list[int]:
+    """The interior waypoints whose passing a piece of ``timed`` belongs to: the blended corner, or, for a
+    straight piece, the corners at its two ends."""
+    _, _, blends = _breakpoints(waypoints, corners)
+    if blends[piece] >= 0:
+        return [blends[piece]]
+    # a straight piece lies on original segment k: count the original waypoints passed before it
+    passed = sum(1 for b in blends[:piece] if b < 0)  # straight pieces before this one = segments started
+    return [k for k in (passed, passed + 1) if 0 < k < len(waypoints) - 1]
 
 
 def time_path(waypoints: Sequence[np.ndarray], limits: JointLimits,
-              is_valid: Callable[[np.ndarray], bool] | None = None, max_repairs: int = 20) -> TimedPath:
-    """Time a path without stopping at its waypoints; where the blended motion collides (checked densely with
-    ``is_valid``), stop at the waypoints of the colliding segment and time again."""
+              is_valid: Callable[[np.ndarray], bool] | None = None, max_repairs: int = 60,
+              first_invalid: Callable[[np.ndarray], int | None] | None = None,
+              max_deviation_rad: float = MAX_DEVIATION_RAD) -> TimedPath:
+    """Time a path without stopping at its waypoints (blends from :func:`plan_corners`). With ``is_valid`` (one
+    configuration) or ``first_invalid`` (a batch, see :func:`first_invalid_sample`), the timed motion is re-checked
+    densely; where a blend collides, that corner's blend distance is halved (and its speed chosen again), and after
+    two halvings the motion stops at the waypoint; then the path is timed again."""
     waypoints = np.asarray(waypoints, dtype=np.float64)
     if len(waypoints) < 2:
         raise ValueError("a path needs at least two waypoints")
-    velocities = via_velocities(waypoints, limits)
-    timed = time_waypoints(waypoints, limits, velocities)
-    if is_valid is None:
+    corners = plan_corners(waypoints, limits, max_deviation_rad)
+    timed = time_corners(waypoints, limits, corners)
+    if is_valid is None and first_invalid is None:
         return timed
+    allowed = [c.distance_rad for c in corners]
+    shrunk = [0] * len(waypoints)
     for _ in range(max_repairs):
-        hit = first_invalid_sample(timed, is_valid)
+        hit = first_invalid_sample(timed, is_valid, first_invalid=first_invalid)
         if hit is None:
             return timed
-        segment = hit[0]
-        if not np.any(velocities[segment]) and not np.any(velocities[segment + 1]):
-            break  # already stopping at both ends: the straight segment itself is invalid
-        velocities[segment] = 0.0
-        velocities[segment + 1] = 0.0
-        timed = time_waypoints(waypoints, limits, velocities)
-    hit = first_invalid_sample(timed, is_valid)
+        culprits = [k for k in _corner_of(timed, waypoints, corners, hit[0]) if not corners[k].stops]
+        if not culprits:
+            break  # a straight piece between stops collides: the path itself is invalid
+        for k in culprits:
+            shrunk[k] += 1
+            allowed[k] = 0.0 if shrunk[k] > 2 else 0.5 * corners[k].distance_rad
+        corners = plan_corners(waypoints, limits, max_deviation_rad, allowed=allowed)
+        corners = [STOP if a <= 0.0 else c for c, a in zip(corners, allowed)]
+        timed = time_corners(waypoints, limits, corners)
+    hit = first_invalid_sample(timed, is_valid, first_invalid=first_invalid)
     if hit is not None:
         raise ValueError(f"the timed motion collides at t = {hit[1]:.3f} s in segment {hit[0]} even when stopping "
                          "at its waypoints: the path itself is not collision-free")
