@@ -298,7 +298,8 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
             slots = plan_kitting(order, [assembly.part(n).mesh for n in order], ranked, ok_at_target,
                                  _kitting_area(scene, assembly),
                                  prefer_near_xy=world_from_assembly.position[:2],
-                                 reach=kit_reach, deadline=deadline)
+                                 reach=kit_reach, deadline=deadline,
+                                 target_rotations={n: targets[n].rotation for n in order})
         except KittingError as exc:
             error = PlanningFailed("kitting", str(exc))
             error.seconds = {"kitting": time.perf_counter() - started}

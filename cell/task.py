@@ -50,7 +50,11 @@ HELD_MARGIN_M = 0.002  # the held part is checked pulled in by this much, so it 
 SQUEEZE_M = 0.004  # the closing command asks for this much less than the part's width (force closure)
 DENSE_CHECK_RAD = 0.004  # joint step of the re-check of planned paths
 IK_ATTEMPTS = 6  # IK solutions tried (each with restarts) for a collision-free contact configuration
-PANDA_LIMITS = JointLimits(VELOCITY_LIMITS, ACCELERATION_LIMITS, JERK_LIMITS)
+CARRY_CLEARANCE_M = 0.002  # the carried part is grown by this much on its way to the target ...
+TRANSIT_CLEARANCE_M = 0.003  # ... and free-space moves keep this from every obstacle
+LIMIT_FRACTION = 0.9  # motions are planned at this fraction of the published limits: headroom for tracking
+PANDA_LIMITS = JointLimits(LIMIT_FRACTION * VELOCITY_LIMITS, LIMIT_FRACTION * ACCELERATION_LIMITS,
+                           LIMIT_FRACTION * JERK_LIMITS)
 
 
 class TaskPlanningError(RuntimeError):
@@ -110,7 +114,11 @@ class CellWorld:
         self.motion = motion or MotionSettings()
         self.part_poses: dict[str, Pose] = {}
         self.checker = RobotCollisionChecker(world_from_base.matrix(), {})
+        # free-space moves keep TRANSIT_CLEARANCE_M from every obstacle (the simulator's and a real robot's
+        # geometry is a little larger than the planning model); moves into contact use the exact one
+        self.transit_checker = RobotCollisionChecker(world_from_base.matrix(), {})
         self.ik_settings = IKSettings()
+        self._grown_cache: dict[tuple, ConvexPart] = {}
         self.timing_seconds = 0.0  # spent in Ruckig timing and its collision re-checks
 
     # --- world state ------------------------------------------------------------------------------------------
@@ -120,17 +128,31 @@ class CellWorld:
         obstacles = {name: (part, pose.matrix()) for name, (part, pose) in self.static.items()}
         obstacles.update({name: (self.parts[name], pose.matrix()) for name, pose in self.part_poses.items()})
         self.checker.set_obstacles(obstacles)
+        self.transit_checker.set_obstacles({name: (self._grown(name, part), pose)
+                                            for name, (part, pose) in obstacles.items()})
 
-    def validity(self, ignore: frozenset[str] = frozenset()):
-        checker = self.checker
+    def _grown(self, name: str, part: ConvexPart) -> ConvexPart:
+        key = (name, id(part))
+        if key not in self._grown_cache:
+            self._grown_cache[key] = shrunk(part, -TRANSIT_CLEARANCE_M)
+        return self._grown_cache[key]
+
+    def validity(self, ignore: frozenset[str] = frozenset(), transit: bool = False):
+        """``q -> bool`` against the current world, skipping the obstacles named in ``ignore``; ``transit``:
+        with every obstacle grown by :data:`TRANSIT_CLEARANCE_M`."""
+        checker = self.transit_checker if transit else self.checker
         return lambda q: checker.is_valid(np.asarray(q, dtype=np.float64), ignore=ignore)
 
-    def hold(self, part: str | None, grasp: Grasp | None, opening_m: float) -> None:
-        if part is None:
-            self.checker.hold(None, opening_m=opening_m)
-        else:
-            held = shrunk(self.parts[part], HELD_MARGIN_M)
-            self.checker.hold(held, grasp.part_from_tcp.inverse().matrix(), opening_m=opening_m)
+    def hold(self, part: str | None, grasp: Grasp | None, opening_m: float,
+             margin_m: float = HELD_MARGIN_M) -> None:
+        """Put ``part`` in the hand at ``grasp`` (its geometry pulled in by ``margin_m``; negative: grown), or
+        empty the hand; the fingers open to ``opening_m``."""
+        for checker in (self.checker, self.transit_checker):
+            if part is None:
+                checker.hold(None, opening_m=opening_m)
+            else:
+                held = shrunk(self.parts[part], margin_m)
+                checker.hold(held, grasp.part_from_tcp.inverse().matrix(), opening_m=opening_m)
 
     # --- kinematics -------------------------------------------------------------------------------------------
     def solve_ik(self, world_from_tcp: Pose, seed_q: np.ndarray, valid, part: str, stage: str,
@@ -251,8 +273,11 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         grasp_q = world.solve_ik(tcp_pick, q, valid, name, "grasp at the pick", hint_q=task.pick_q_hint)
         approach_path = world.straight_line(grasp_q, tcp_pick, -approach_world * APPROACH_M, valid, name,
                                             "approach to the pick")[::-1]
-        to_pick = world.transit(q, approach_path[0], world.validity(), name, "move to the pick")
-        add_motion(name, "move to the pick", to_pick, world.validity(), None)
+        free = world.validity(transit=True)
+        if not free(q) or not free(approach_path[0]):  # ends too close to something for the margin
+            free = world.validity()
+        to_pick = world.transit(q, approach_path[0], free, name, "move to the pick")
+        add_motion(name, "move to the pick", to_pick, free, None)
         add_motion(name, "approach", approach_path, valid, None)
         program.steps.append(GripperStep(f"{name}: close", max(0.0, grasp.width_m - SQUEEZE_M), name))
         # --- carry -----------------------------------------------------------------------------------------
@@ -269,12 +294,19 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
                                  hint_q=task.place_q_hint)
         insertion = world.straight_line(place_q, tcp_place, -task.insertion_direction * INSERTION_M, valid_insert,
                                         name, "insertion")[::-1]
-        valid = world.validity()
-        if not valid(insertion[0]):
-            raise TaskPlanningError("goal_in_collision", name, "move to the target",
-                                    f"the pre-place configuration collides ({world._collision_words(insertion[0])})")
+        # carry with the part grown by a margin (clear of everything by more than the simulator's contact slop),
+        # or, where the pre-place pose already slides along a neighbour, pulled in like the insertion
+        world.hold(name, grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
+        valid = world.validity(transit=True)
+        if not valid(insertion[0]) or not valid(lift[-1]):
+            world.hold(name, grasp, grasp.width_m)
+            valid = world.validity()
+            if not valid(insertion[0]):
+                raise TaskPlanningError("goal_in_collision", name, "move to the target", "the pre-place "
+                                        f"configuration collides ({world._collision_words(insertion[0])})")
         carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
         add_motion(name, "move to the target", carry, valid, name)
+        world.hold(name, grasp, grasp.width_m)
         add_motion(name, "insert", insertion, valid_insert, name)
         # --- release ---------------------------------------------------------------------------------------
         program.steps.append(GripperStep(f"{name}: open", grasp.opening_m, name))
@@ -298,9 +330,12 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         if progress is not None:
             progress((index + 1) / len(tasks))
     world.hold(None, None, opening)
-    park = _park_configuration(np.asarray(home_q, dtype=np.float64), world.validity())
-    home = world.transit(q, park, world.validity(), "-", "return home")
-    program.steps.append(MotionStep("return home", _timed(world, home, world.validity(), "-", "return home")))
+    park = _park_configuration(np.asarray(home_q, dtype=np.float64), world.validity(transit=True))
+    free = world.validity(transit=True)
+    if not free(q) or not free(park):
+        free = world.validity()
+    home = world.transit(q, park, free, "-", "return home")
+    program.steps.append(MotionStep("return home", _timed(world, home, free, "-", "return home")))
     return plan
 
 

@@ -168,15 +168,15 @@ def signed_distance(part_a: ConvexPart, world_from_a: Pose, part_b: ConvexPart, 
 
 
 def shrunk(part: ConvexPart, margin_m: float) -> ConvexPart:
-    """``part`` with every convex piece pulled in by about ``margin_m`` on each side (scaled about its centre
-    along the part frame's axes; exact for axis-aligned boxes). A held part checked this way may slide along the
+    """``part`` with every convex piece pulled in by about ``margin_m`` on each side (out when negative), scaled
+    about its centre along the part frame's axes (exact for axis-aligned boxes). A held part checked this way may slide along the
     faces it touches at its target without counting as a collision, while still colliding with anything it
     would cut into by more than the margin."""
     pieces = []
     for vertices in part.piece_vertices:
         low, high = vertices.min(axis=0), vertices.max(axis=0)
         centre, extent = 0.5 * (low + high), high - low
-        scale = np.clip((extent - 2.0 * margin_m) / np.maximum(extent, 1e-12), 0.05, 1.0)
+        scale = np.clip((extent - 2.0 * margin_m) / np.maximum(extent, 1e-12), 0.05, None)
         pieces.append(trimesh.convex.convex_hull((vertices - centre) * scale + centre))
     return ConvexPart(
         name=part.name,

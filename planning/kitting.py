@@ -44,8 +44,11 @@ BOARD_THICKNESS_RATIO = 0.25  # a part thinner than this fraction of its middle 
 STACK_OVERHANG_M = 0.04  # a stacked board overhangs the one under it by this much on one side (for the fingers)
 STACK_SUPPORT_M = 0.02  # ... and keeps its centre at least this far inside the lower board's edge
 TOP_FACE_FRACTION = 0.8  # a board's flat top covers at least this fraction of its footprint
-SUPPORT_MARGIN_M = 0.003  # the centre of mass lies at least this far inside the points a part rests on
+SUPPORT_MARGIN_M = 0.002  # the centre of mass lies at least this far inside the points a part rests on
 CONTACT_HEIGHT_M = 0.001  # vertices this close to the support touch it
+NARROW_PART_M = 0.05  # a footprint narrower than this is grasped from beside: its pedestal is as wide as it ...
+NARROW_INSET_M = 0.003  # ... less this on each side
+TIP_ANGLE_DEG = 10.0  # a resting part must not tip over when tilted by this much
 CAPACITY_FRACTION = 0.75  # rectangles in a ring pack no denser than this: fail at once above it
 COMFORTABLE_FRACTION = 0.6  # places beyond this fraction of the ring's depth are tried last ...
 FAR_PENALTY = 3.0  # ... as if each metre beyond it were this many metres farther from the jig
@@ -129,11 +132,24 @@ def stable_rest_poses(mesh: trimesh.Trimesh, max_poses: int = 6) -> list[tuple[n
     return out
 
 
+def upright_rest_pose(mesh: trimesh.Trimesh, world_from_part_rotation: np.ndarray) -> np.ndarray:
+    """``rest_from_part`` (4x4) of the part turned as ``world_from_part_rotation`` (e.g. as it sits in the
+    assembly), lowest point on z = 0, centred in x-y. Whether it rests stably there is checked per support."""
+    transform = np.eye(4)
+    transform[:3, :3] = world_from_part_rotation
+    moved = mesh.vertices @ world_from_part_rotation.T
+    centre = 0.5 * (moved.min(axis=0) + moved.max(axis=0))
+    transform[:3, 3] = [-centre[0], -centre[1], -moved[:, 2].min()]
+    return transform
+
+
 def pedestal_for(half_extent_xy: np.ndarray, world_from_rest: Pose, height_m: float) -> Pedestal:
     """A pedestal under a footprint of half extents ``half_extent_xy`` centred in the ``rest`` frame (whose x-y
-    plane is the pedestal's top), inset for the fingers."""
+    plane is the pedestal's top), inset for the fingers along the footprint's wide sides."""
     extent = 2.0 * np.asarray(half_extent_xy, dtype=np.float64)
     inset = np.minimum(FINGER_CLEARANCE_M, 0.5 * (1.0 - MIN_PAD_FRACTION) * extent)
+    # across a narrow part the fingers close from beside it, not from under it: support it full width
+    inset = np.where(extent < NARROW_PART_M, NARROW_INSET_M, inset)
     size = np.maximum(extent - 2 * inset, 1e-3)
     rest_from_pedestal = Pose([0.0, 0.0, -0.5 * height_m], [1.0, 0.0, 0.0, 0.0])
     return Pedestal((float(size[0]), float(size[1]), height_m), world_from_rest @ rest_from_pedestal)
@@ -172,7 +188,8 @@ def rests_stably(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, support_rest
                  margin_m: float = SUPPORT_MARGIN_M) -> bool:
     """Whether the part, lying in its rest pose (rest frame: lowest point at z = 0), stands on a support whose top
     is the convex polygon ``support_rest_xy`` (rest frame x-y, at z = 0): the points where it touches the
-    support surround its centre of mass with ``margin_m`` to spare. (A stable pose of the part's hull is not
+    support surround its centre of mass with ``margin_m`` to spare, more for a high centre of mass (it must
+    survive a tilt of :data:`TIP_ANGLE_DEG`). (A stable pose of the part's hull is not
     enough on a pedestal inset from the footprint, nor for parts whose underside is not flat.)"""
     rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
     low = rested[:, 2] < CONTACT_HEIGHT_M
@@ -194,8 +211,10 @@ def rests_stably(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, support_rest
     except QhullError:  # collinear: a knife edge
         return False
     com = mesh.center_mass if mesh.is_watertight and mesh.volume > 0 else mesh.centroid
-    com_rest = (rest_from_part[:3, :3] @ com + rest_from_part[:3, 3])[:2]
-    probes = com_rest + margin_m * np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]])
+    com_rest = rest_from_part[:3, :3] @ com + rest_from_part[:3, 3]
+    # a tall part needs a wider base: it must survive a tilt of TIP_ANGLE_DEG (bumps, the arm passing by)
+    margin_m = max(margin_m, float(com_rest[2]) * np.tan(np.radians(TIP_ANGLE_DEG)))
+    probes = com_rest[:2] + margin_m * np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]])
     return bool(np.all(_inside_convex(probes, hull)))
 
 
@@ -279,7 +298,8 @@ def ring_area_m2(area: KittingArea, cell_m: float = 0.01) -> float:
 def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: dict[str, list[Grasp]],
                  grasp_ok_at_target: Callable[[str, Grasp], bool], area: KittingArea,
                  prefer_near_xy: Sequence[float] = (0.5, 0.0), reach: Reach | None = None,
-                 deadline: float = float("inf")) -> list[KittingSlot]:
+                 deadline: float = float("inf"),
+                 target_rotations: dict[str, np.ndarray] | None = None) -> list[KittingSlot]:
     """A slot for every part (returned in the order given), the largest footprints laid out first, each in the
     free place nearest ``prefer_near_xy`` (usually the jig). ``names`` must be in assembly order: a part is
     only an obstacle to the picks of parts assembled before it (the others are gone by then), and a board may
@@ -289,10 +309,13 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
     ``grasp_ok_at_target(part, grasp)`` says whether a grasp (part frame) also works where the part is placed;
     ``reach`` whether the robot's arm reaches it at the pick among the parts present then (and keeps reaching
     the earlier parts once the new one lies next to them). Past ``deadline`` (``time.perf_counter()``) it
-    gives up.
+    gives up. ``target_rotations`` (part -> world_from_part rotation at the target): each part is first tried
+    lying as it sits in the assembly (where that is stable), so that the grasps that work at the target from
+    above also work at the pick; then in its stable poses, most probable first.
     """
     reach = reach or Reach()
     layout = _Layout(names, dict(zip(names, meshes)), area, np.asarray(prefer_near_xy, dtype=np.float64), reach)
+    layout.target_rotations = dict(target_rotations or {})
     needed, offered = footprint_area_m2([m for m in meshes if not _is_board(m)], area.gap_m), ring_area_m2(area)
     boards = [m for m in meshes if _is_board(m)]
     needed += footprint_area_m2(sorted(boards, key=lambda m: -np.prod(np.sort(m.extents)[1:]))[:1], area.gap_m)
@@ -326,6 +349,7 @@ class _Layout:
     def __init__(self, order: list[str], meshes: dict[str, trimesh.Trimesh], area: KittingArea,
                  prefer: np.ndarray, reach: Reach) -> None:
         self.order, self.meshes, self.area, self.prefer, self.reach = order, meshes, area, prefer, reach
+        self.target_rotations: dict[str, np.ndarray] = {}
         self.slots: list[KittingSlot] = []
         self.usable_at_target: dict[tuple, bool] = {}
         self.places_cache: dict[tuple, list] = {}
@@ -352,6 +376,8 @@ class _Layout:
     def place(self, name: str, grasps: list[Grasp], grasp_ok_at_target) -> KittingSlot | None:
         mesh = self.meshes[name]
         poses = stable_rest_poses(mesh)
+        if name in self.target_rotations:  # lying as it sits in the assembly, its target grasps work from above
+            poses = [(upright_rest_pose(mesh, self.target_rotations[name]), float("nan"))] + poses
         stack_first = _is_board(mesh)
         for attempt in ("stack", "ground") if stack_first else ("ground", "stack"):
             for rest_from_part, probability in poses[:1] if attempt == "stack" else poses:

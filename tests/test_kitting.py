@@ -11,7 +11,7 @@ from planning.sequence import GraspChecker
 from scenes import sample_folder
 
 AREA = KittingArea(centre_xy=(0.0, 0.0), inner_radius_m=0.32, outer_radius_m=0.72, table_min_xy=(-0.55, -0.8),
-                   table_max_xy=(0.95, 0.8), table_z_m=0.0, pedestal_height_m=0.04,
+                   table_max_xy=(0.95, 0.8), table_z_m=0.0, pedestal_height_m=0.12,
                    keep_out=(((0.25, -0.25), (0.75, 0.25)),), gap_m=0.06)
 
 
@@ -37,7 +37,7 @@ def test_chair_parts_lie_apart_in_the_ring_with_grasps_valid_at_pick():
         mesh = assembly.part(slot.part).mesh
         world = slot.world_from_part.apply(mesh.vertices)
         if slot.rests_on is None:
-            assert world[:, 2].min() == pytest.approx(0.04, abs=1e-6)  # resting on its pedestal
+            assert world[:, 2].min() == pytest.approx(0.12, abs=1e-6)  # resting on its pedestal
         else:  # on a board assembled after it
             base = by_name[slot.rests_on]
             assert names.index(slot.rests_on) > k
