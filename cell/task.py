@@ -34,7 +34,7 @@ import trimesh
 
 from cell.program import GripperStep, MotionStep, Program
 from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS, IKError, IKSettings, Panda
-from planning.collision import ConvexPart, shrunk
+from planning.collision import ConvexPart, shrunk, signed_distance
 from planning.grasp import Grasp
 from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path, straight_line_valid
 from planning.pose import Pose
@@ -52,6 +52,7 @@ DENSE_CHECK_RAD = 0.004  # joint step of the re-check of planned paths
 IK_ATTEMPTS = 6  # IK solutions tried (each with restarts) for a collision-free contact configuration
 CARRY_CLEARANCE_M = 0.002  # the carried part is grown by this much on its way to the target ...
 TRANSIT_CLEARANCE_M = 0.003  # ... and free-space moves keep this from every obstacle
+SLIDE_CLEARANCE_M = 0.004  # a part inserted along a neighbour's face starts this far off it
 LIMIT_FRACTION = 0.9  # motions are planned at this fraction of the published limits: headroom for tracking
 PANDA_LIMITS = JointLimits(LIMIT_FRACTION * VELOCITY_LIMITS, LIMIT_FRACTION * ACCELERATION_LIMITS,
                            LIMIT_FRACTION * JERK_LIMITS)
@@ -205,6 +206,24 @@ class CellWorld:
             path.append(q)
         return np.array(path)
 
+    def clearance_shift(self, part: str, task: PartTask) -> np.ndarray:
+        """Where the part slides along a neighbour into its target (it touches the neighbour already
+        :data:`INSERTION_M` back along the insertion direction), a sideways offset (m, world) of the pre-place
+        pose away from that neighbour by :data:`SLIDE_CLEARANCE_M`: the part then comes into contact only at
+        the end of its straight insertion, not during the carry."""
+        pre = Pose(task.world_from_target.position - task.insertion_direction * INSERTION_M,
+                   task.world_from_target.quat_wxyz)
+        away = np.zeros(3)
+        for other, pose in self.part_poses.items():
+            if other == part:
+                continue
+            result = signed_distance(self.parts[other], pose, self.parts[part], pre, cutoff_m=SLIDE_CLEARANCE_M)
+            if result.measured and result.distance_m < SLIDE_CLEARANCE_M and result.normal_ab is not None:
+                away += result.normal_ab
+        away -= np.dot(away, task.insertion_direction) * task.insertion_direction
+        norm = float(np.linalg.norm(away))
+        return away / norm * SLIDE_CLEARANCE_M if norm > 1e-9 else np.zeros(3)
+
     def _collision_words(self, q: np.ndarray) -> str:
         hit = self.checker.first_collision(q)
         return "no collision at its end" if hit is None else str(hit)
@@ -292,8 +311,8 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         valid_insert = world.validity(ignore_at_target)
         place_q = world.solve_ik(tcp_place, lift[-1], valid_insert, name, "release at the target",
                                  hint_q=task.place_q_hint)
-        insertion = world.straight_line(place_q, tcp_place, -task.insertion_direction * INSERTION_M, valid_insert,
-                                        name, "insertion")[::-1]
+        back = -task.insertion_direction * INSERTION_M + world.clearance_shift(name, task)
+        insertion = world.straight_line(place_q, tcp_place, back, valid_insert, name, "insertion")[::-1]
         # carry with the part grown by a margin (clear of everything by more than the simulator's contact slop),
         # or, where the pre-place pose already slides along a neighbour, pulled in like the insertion
         world.hold(name, grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
