@@ -151,9 +151,10 @@ def plan_corners(waypoints: np.ndarray, limits: JointLimits, max_deviation_rad: 
                  allowed: Sequence[float] | None = None) -> list[Corner]:
     """A :class:`Corner` per waypoint (stops at the ends): per interior waypoint, the blend distance (a fraction in
     :data:`DISTANCE_FRACTIONS` of half the shorter neighbouring segment, at most ``allowed[k]`` when given) and
-    speed (a fraction in :data:`SPEED_FRACTIONS` of the fastest along both segments) that make the pieces around
-    it quickest while the blend stays within ``max_deviation_rad`` of the path and the straight pieces do not
-    overshoot; or a stop. Coordinate descent over the waypoints, starting from stops everywhere."""
+    speed (a fraction in :data:`SPEED_FRACTIONS` of the fastest along both segments), refined by a pattern search,
+    that make the pieces around it quickest while the blend stays within ``max_deviation_rad`` of the path and the
+    straight pieces do not overshoot; or a stop. Coordinate descent over the waypoints, starting from stops
+    everywhere."""
     waypoints = np.asarray(waypoints, dtype=np.float64)
     count = len(waypoints)
     units, lengths = _directions(waypoints)
@@ -199,6 +200,19 @@ def plan_corners(waypoints: np.ndarray, limits: JointLimits, max_deviation_rad: 
                 cost = local_cost(k)
                 if cost < best - 1e-9:
                     best_corner, best = candidate, cost
+            # then a pattern search around the best blend: distance and speed up and down, steps halving
+            step = 0.25
+            while not best_corner.stops and step > 0.02:
+                improved = False
+                for scale_d, scale_s in ((1 + step, 1.0), (1 - step, 1.0), (1.0, 1 + step), (1.0, 1 - step)):
+                    candidate = Corner(min(room, best_corner.distance_rad * scale_d),
+                                       min(fastest, best_corner.speed * scale_s))
+                    corners[k] = candidate
+                    cost = local_cost(k)
+                    if cost < best - 1e-9:
+                        best_corner, best, improved = candidate, cost, True
+                if not improved:
+                    step /= 2
             corners[k] = best_corner
     return corners
 
