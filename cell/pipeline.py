@@ -208,8 +208,9 @@ class Pipeline:
                 assembly_from_world = self.plan.world_from_assembly.inverse()
                 final = assembly_with_poses(self.target, {p.name: assembly_from_world @ p.world_from_final
                                                           for p in self.simulation.parts})
-            Image.fromarray(overview_image(self.image, self.target, final, seed=self.args.seed)).save(
-                folder / "overview.png")
+            caption = "target assembly (given)" if self.given is not None else "predicted assembly (repaired)"
+            picture = overview_image(self.image, self.target, final, seed=self.args.seed, target_caption=caption)
+            Image.fromarray(picture).save(folder / "overview.png")
         if self.simulation is not None and self.simulation.frames:
             from cell.simulate import write_gif
 

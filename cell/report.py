@@ -91,9 +91,9 @@ def _direction_words(direction) -> str:
 
 
 def overview_image(image_rgb: np.ndarray | None, target: Assembly, final: Assembly | None,
-                   seed: int = 0) -> np.ndarray:
+                   seed: int = 0, target_caption: str = "target assembly") -> np.ndarray:
     """Input image | target assembly | simulated result (each ``OVERVIEW_PANEL_PX`` square, captioned)."""
-    from PIL import Image, ImageDraw
+    from PIL import Image, ImageDraw, ImageFont
 
     from cell.render import Appearance, AssemblyRenderer, CameraSpec, fitted_distance_m
 
@@ -108,7 +108,7 @@ def overview_image(image_rgb: np.ndarray | None, target: Assembly, final: Assemb
     if image_rgb is not None:
         panels.append(np.asarray(Image.fromarray(image_rgb).resize((OVERVIEW_PANEL_PX, OVERVIEW_PANEL_PX))))
         captions.append("input image")
-    for assembly, caption in ((target, "target assembly"), (final, "simulated result")):
+    for assembly, caption in ((target, target_caption), (final, "simulated result")):
         if assembly is None:
             continue
         with AssemblyRenderer(assembly) as renderer:
@@ -116,10 +116,14 @@ def overview_image(image_rgb: np.ndarray | None, target: Assembly, final: Assemb
         captions.append(caption)
     picture = Image.fromarray(np.concatenate(panels, axis=1))
     draw = ImageDraw.Draw(picture)
+    try:
+        font = ImageFont.load_default(size=15)
+    except TypeError:  # Pillow < 10.1: the small bitmap font
+        font = ImageFont.load_default()
     for k, caption in enumerate(captions):
-        draw.rectangle([k * OVERVIEW_PANEL_PX, 0, k * OVERVIEW_PANEL_PX + 8 * len(caption) + 10, 18],
-                       fill=(255, 255, 255))
-        draw.text((k * OVERVIEW_PANEL_PX + 5, 3), caption, fill=(0, 0, 0))
+        left, top, right, bottom = draw.textbbox((k * OVERVIEW_PANEL_PX + 6, 4), caption, font=font)
+        draw.rectangle([left - 4, top - 3, right + 4, bottom + 3], fill=(255, 255, 255))
+        draw.text((k * OVERVIEW_PANEL_PX + 6, 4), caption, fill=(0, 0, 0), font=font)
     return np.asarray(picture)
 
 
