@@ -47,7 +47,8 @@ TOP_FACE_FRACTION = 0.8  # a board's flat top covers at least this fraction of i
 SUPPORT_MARGIN_M = 0.002  # the centre of mass lies at least this far inside the points a part rests on
 CONTACT_HEIGHT_M = 0.001  # vertices this close to the support touch it
 NARROW_PART_M = 0.05  # a footprint narrower than this is grasped from beside: its pedestal is as wide as it ...
-NARROW_INSET_M = 0.005  # ... less this on each side
+NARROW_INSET_M = 0.005  # ... less this on each side ...
+NARROW_MIN_WIDTH_M = 0.008  # ... but at least this wide (or as wide as the part), to stand on
 TIP_ANGLE_DEG = 10.0  # a resting part must not tip over when tilted by this much
 CAPACITY_FRACTION = 0.75  # rectangles in a ring pack no denser than this: fail at once above it
 COMFORTABLE_FRACTION = 0.6  # places beyond this fraction of the ring's depth are tried last ...
@@ -150,7 +151,7 @@ def pedestal_for(half_extent_xy: np.ndarray, world_from_rest: Pose, height_m: fl
     inset = np.minimum(FINGER_CLEARANCE_M, 0.5 * (1.0 - MIN_PAD_FRACTION) * extent)
     # across a narrow part the fingers close from beside it, not from under it: support it full width
     inset = np.where(extent < NARROW_PART_M, NARROW_INSET_M, inset)
-    size = np.maximum(extent - 2 * inset, 1e-3)
+    size = np.maximum(extent - 2 * inset, np.minimum(extent, NARROW_MIN_WIDTH_M))
     rest_from_pedestal = Pose([0.0, 0.0, -0.5 * height_m], [1.0, 0.0, 0.0, 0.0])
     return Pedestal((float(size[0]), float(size[1]), height_m), world_from_rest @ rest_from_pedestal)
 
