@@ -25,7 +25,15 @@ import trimesh
 
 from cell.render import FIELD_OF_VIEW_DEG, fitted_distance_m
 from perception.normalize import NormalizedParts
-from perception.upright import DEFAULT_UP, UpEstimate, UpSettings, dominant_yaw_axis, estimate_up, upright_frame
+from perception.upright import (
+    DEFAULT_UP,
+    UpEstimate,
+    UpSettings,
+    dominant_yaw_axis,
+    estimate_up,
+    surface_directions,
+    upright_frame,
+)
 from planning.pose import Pose
 
 
@@ -55,6 +63,18 @@ def _placed_vertices(meshes: list[trimesh.Trimesh], poses: list[Pose]) -> np.nda
     return np.concatenate([pose.apply(np.asarray(mesh.vertices)) for mesh, pose in zip(meshes, poses)])
 
 
+def surface_directions_camera(meshes: list[trimesh.Trimesh], camera_from_part: list[Pose],
+                              extents_norm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every placed part's surface directions in the camera frame, (M, 3), and their weights, (M,): each part's
+    area shares times its size (the canonical box diagonal), so larger parts vote more."""
+    directions, weights = [], []
+    for mesh, pose, extents in zip(meshes, camera_from_part, extents_norm):
+        d, w = surface_directions(mesh)
+        directions.append(d @ pose.rotation.T)
+        weights.append(w * float(np.linalg.norm(extents)))
+    return np.concatenate(directions), np.concatenate(weights)
+
+
 def place_parts(quat_wxyz: np.ndarray, trans_norm: np.ndarray, parts: NormalizedParts,
                 meshes: list[trimesh.Trimesh], up_settings: UpSettings = DEFAULT_UP,
                 fov_deg: float = FIELD_OF_VIEW_DEG) -> Placement:
@@ -63,10 +83,9 @@ def place_parts(quat_wxyz: np.ndarray, trans_norm: np.ndarray, parts: Normalized
     quat_wxyz = np.asarray(quat_wxyz, dtype=np.float64)
     centre_from_part = centre_from_part_metres(quat_wxyz, trans_norm, parts)
     vertices = _placed_vertices(meshes, centre_from_part)  # object-centred, camera axes, metres
-    canonical_axes = np.stack([Pose(np.zeros(3), q).rotation for q in quat_wxyz])
-    weights = np.linalg.norm(parts.extents_norm, axis=1)  # larger parts vote more
-    up = estimate_up(canonical_axes, vertices, weights, up_settings)
-    x_axis = dominant_yaw_axis(canonical_axes, up.up_camera, weights)
+    directions, weights = surface_directions_camera(meshes, centre_from_part, parts.extents_norm)
+    up = estimate_up(directions, weights, vertices, up_settings)
+    x_axis = dominant_yaw_axis(directions, weights, up.up_camera)
     centred_from_assembly = upright_frame(vertices, up.up_camera, x_axis)
     local = centred_from_assembly.inverse().apply(vertices)
     distance = fitted_distance_m(np.stack([local.min(axis=0), local.max(axis=0)]), fov_deg)

@@ -5,13 +5,15 @@ no floor. The training cameras have no roll and look down at 10-50 degrees (:fun
 so in the camera frame the true up direction is ``(0, -cos(e), -sin(e))`` for an elevation ``e``: one unknown.
 It is read off the predicted assembly itself:
 
-1. **Axes** (:func:`axes_up`): furniture is built along three axes, so most parts have one of their canonical
-   (PCA) axes vertical. Every candidate elevation is scored by how many part axes lie near its up direction (a
-   Gaussian kernel of width ``kernel_deg``, each part counting its best axis once, weighted by part size).
+1. **Surfaces** (:func:`manhattan_up`): furniture is built along three axes, so nearly all of its surface faces
+   up, down or sideways. Every candidate elevation is scored by the weight of the placed parts' face normals
+   (:func:`surface_directions`, each part's normals weighted by their share of its area times the part's size)
+   that are parallel or perpendicular to its up direction (a Gaussian kernel of width ``kernel_deg``); this holds
+   for merged parts whose principal axes are tilted, and a round leg votes with its sides.
 2. **Stable pose** (:func:`stable_up`): the assembly stands on the floor, so its up direction is the outward
    normal of a face of the convex hull of the placed parts, reversed. Among the hull's stable resting faces
-   (``trimesh.poses.compute_stable_poses``) the one nearest the axes estimate, within ``snap_deg``, gives the
-   final direction, projected onto the no-roll plane; without one the axes estimate stands.
+   (``trimesh.poses.compute_stable_poses``) the one nearest the surfaces estimate, within ``snap_deg``, gives the
+   final direction, projected onto the no-roll plane; without one the surfaces estimate stands.
 
 :func:`upright_frame` then builds ``camera_from_assembly``: z along up, x along the object's dominant horizontal
 axis (the one of its four directions nearest to "towards the camera"), origin at the centre of the footprint
@@ -21,6 +23,7 @@ points are in one unit; the frame's position comes out in that unit.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,14 +34,17 @@ from planning.pose import Pose
 
 # elevations searched: the training range with a margin, so a view just outside it is still recovered
 SEARCH_MARGIN_DEG = 15.0
-GRID_STEP_DEG = 0.25
+COARSE_STEP_DEG = 0.5
+FINE_STEP_DEG = 0.05
 
 
 @dataclass(frozen=True)
 class UpSettings:
     elevation_range_deg: tuple[float, float] = ELEVATION_RANGE_DEG  # camera prior: no roll, these elevations
-    kernel_deg: float = 10.0  # width of the axis-alignment kernel
-    snap_deg: float = 6.0  # a stable face within this of the axes estimate replaces it (0: axes only)
+    # Chosen on rotations perturbed by 0-20 degrees per part (benchmarks/perception.py, "way back"): a broad kernel
+    # averages the parts' errors, and a stable face only refines an estimate already within a few degrees.
+    kernel_deg: float = 20.0  # width of the surface-alignment kernel
+    snap_deg: float = 3.0  # a stable face within this of the surfaces estimate replaces it (0: surfaces only)
     use_stable_poses: bool = True
 
 
@@ -48,12 +54,13 @@ DEFAULT_UP = UpSettings()
 @dataclass(frozen=True)
 class UpEstimate:
     """up_camera: (3,) unit vector, camera frame. elevation_deg: the camera elevation it implies.
-    method: "axes", "stable" (a stable face within the snap angle) or "prior" (no structure: mid elevation)."""
+    method: "surfaces", "stable" (a stable face within the snap angle) or "prior" (no structure: mid elevation).
+    surfaces_elevation_deg: the elevation the surfaces alone gave."""
 
     up_camera: np.ndarray
     elevation_deg: float
     method: str
-    axes_elevation_deg: float
+    surfaces_elevation_deg: float
 
 
 def up_from_elevation(elevation_deg: np.ndarray | float) -> np.ndarray:
@@ -73,27 +80,48 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
-def _search_grid(settings: UpSettings) -> np.ndarray:
+def surface_directions(mesh: trimesh.Trimesh, max_directions: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """The directions of a mesh's surface in its own frame: (K, 3) unit face normals grouped (sign-free, to about
+    1 degree) and (K,) weights (their share of the surface area, summing to 1); the ``max_directions`` largest."""
+    normals = np.asarray(mesh.face_normals, dtype=np.float64)
+    areas = np.asarray(mesh.area_faces, dtype=np.float64)
+    lead = np.argmax(np.abs(normals), axis=1)
+    normals = normals * np.sign(normals[np.arange(len(normals)), lead])[:, None]  # n and -n: one direction
+    _, group = np.unique(np.round(normals * 60.0), axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    sums = np.zeros((group.max() + 1, 3))
+    np.add.at(sums, group, normals * areas[:, None])
+    weights = np.bincount(group, weights=areas)
+    keep = np.argsort(weights)[::-1][:max_directions]
+    keep = keep[np.linalg.norm(sums[keep], axis=1) > 0]
+    directions = sums[keep] / np.linalg.norm(sums[keep], axis=1, keepdims=True)
+    total = weights[keep].sum()
+    return directions, weights[keep] / total if total > 0 else np.full(len(keep), 1.0 / max(len(keep), 1))
+
+
+def _manhattan_scores(elevations: np.ndarray, directions: np.ndarray, weights: np.ndarray,
+                      kernel_deg: float) -> np.ndarray:
+    """Score of each candidate elevation: the weight of the directions parallel or perpendicular to its up."""
+    cosines = np.abs(up_from_elevation(elevations) @ directions.T).clip(max=1.0)  # (G, M)
+    angles = np.degrees(np.arccos(cosines))
+    off = np.minimum(angles, 90.0 - angles)  # from parallel or from perpendicular
+    return (weights * np.exp(-0.5 * (off / kernel_deg) ** 2)).sum(axis=1)
+
+
+def manhattan_up(directions: np.ndarray, weights: np.ndarray, settings: UpSettings = DEFAULT_UP) -> tuple[float, float]:
+    """(elevation in degrees, score) of the no-roll up direction that makes the most surface of the predicted
+    assembly horizontal or vertical. directions: (M, 3) unit directions in the camera frame (the parts' face
+    normals as placed); weights: (M,). The score is the weight of the directions that agree (at most their sum)."""
+    directions = np.asarray(directions, dtype=np.float64)
+    weights = np.asarray(weights, dtype=np.float64)
     lo, hi = settings.elevation_range_deg
-    return np.arange(lo - SEARCH_MARGIN_DEG, hi + SEARCH_MARGIN_DEG + 1e-9, GRID_STEP_DEG)
-
-
-def axes_up(rotations: np.ndarray, weights: np.ndarray | None = None,
-            settings: UpSettings = DEFAULT_UP) -> tuple[float, float]:
-    """(elevation in degrees, score) of the no-roll up direction best aligned with the parts' axes.
-
-    rotations: (N, 3, 3) camera_from_part rotations (columns: each part's axes in the camera frame; any frame
-    fixed to the part works, its canonical PCA frame works best). weights: (N,) (default: all 1).
-    The score is the weighted number of parts with an axis on the chosen direction (0 when there is none)."""
-    rotations = np.asarray(rotations, dtype=np.float64)
-    weights = np.ones(len(rotations)) if weights is None else np.asarray(weights, dtype=np.float64)
-    grid = _search_grid(settings)
-    ups = up_from_elevation(grid)  # (G, 3)
-    cosines = np.abs(np.einsum("gi,nik->gnk", ups, rotations)).clip(max=1.0)  # (G, N, 3)
-    angles = np.degrees(np.arccos(cosines.max(axis=2)))  # (G, N): each part's best axis
-    scores = (weights * np.exp(-0.5 * (angles / settings.kernel_deg) ** 2)).sum(axis=1)
+    coarse = np.arange(lo - SEARCH_MARGIN_DEG, hi + SEARCH_MARGIN_DEG + 1e-9, COARSE_STEP_DEG)
+    scores = _manhattan_scores(coarse, directions, weights, settings.kernel_deg)
+    centre = coarse[int(np.argmax(scores))]
+    fine = np.arange(centre - COARSE_STEP_DEG, centre + COARSE_STEP_DEG + 1e-9, FINE_STEP_DEG)
+    scores = _manhattan_scores(fine, directions, weights, settings.kernel_deg)
     best = int(np.argmax(scores))
-    return float(grid[best]), float(scores[best])
+    return float(fine[best]), float(scores[best])
 
 
 def stable_up(points_camera: np.ndarray, near: np.ndarray, snap_deg: float) -> np.ndarray | None:
@@ -101,7 +129,9 @@ def stable_up(points_camera: np.ndarray, near: np.ndarray, snap_deg: float) -> n
     ``snap_deg``), projected onto the no-roll plane (x = 0); ``None`` if there is none. points_camera: (M, 3)."""
     try:
         hull = trimesh.convex.convex_hull(np.asarray(points_camera, dtype=np.float64))
-        transforms, _ = trimesh.poses.compute_stable_poses(hull)
+        with warnings.catch_warnings(), np.errstate(all="ignore"):  # sliver faces of the hull: harmless
+            warnings.simplefilter("ignore", RuntimeWarning)
+            transforms, _ = trimesh.poses.compute_stable_poses(hull)
     except Exception:  # degenerate (flat or collinear) point sets have no hull to rest on
         return None
     best, best_angle = None, snap_deg
@@ -117,17 +147,17 @@ def stable_up(points_camera: np.ndarray, near: np.ndarray, snap_deg: float) -> n
     return best
 
 
-def estimate_up(rotations: np.ndarray, points_camera: np.ndarray, weights: np.ndarray | None = None,
+def estimate_up(directions: np.ndarray, weights: np.ndarray, points_camera: np.ndarray,
                 settings: UpSettings = DEFAULT_UP) -> UpEstimate:
     """The up direction of a predicted assembly in the camera frame (see the module docstring).
 
-    rotations: (N, 3, 3) each part's canonical axes in the camera frame. points_camera: (M, 3) points of the
-    placed parts (any unit). weights: (N,) per-part weights of the axes vote (default 1)."""
-    elevation, score = axes_up(rotations, weights, settings)
-    if score < 1e-3:  # no part has an axis near any admissible up direction
+    directions: (M, 3) unit surface directions of the placed parts, camera frame; weights: (M,) their weights.
+    points_camera: (K, 3) points of the placed parts (any unit), for the stable resting faces."""
+    elevation, score = manhattan_up(directions, weights, settings)
+    if score <= 1e-3 * max(float(np.sum(weights)), 1e-12):  # no surface agrees with any admissible up direction
         mid = 0.5 * sum(settings.elevation_range_deg)
         return UpEstimate(up_from_elevation(mid), mid, "prior", mid)
-    up, method = up_from_elevation(elevation), "axes"
+    up, method = up_from_elevation(elevation), "surfaces"
     if settings.use_stable_poses and settings.snap_deg > 0:
         stable = stable_up(points_camera, up, settings.snap_deg)
         if stable is not None:
@@ -135,30 +165,27 @@ def estimate_up(rotations: np.ndarray, points_camera: np.ndarray, weights: np.nd
     return UpEstimate(up, elevation_of(up), method, elevation)
 
 
-def dominant_yaw_axis(rotations: np.ndarray, up: np.ndarray, weights: np.ndarray | None = None,
+def dominant_yaw_axis(directions: np.ndarray, weights: np.ndarray, up: np.ndarray,
                       kernel_deg: float = 6.0) -> np.ndarray:
     """(3,) unit horizontal direction (perpendicular to ``up``) of the object's main horizontal axis, chosen among
     its four quarter turns as the one nearest to "towards the camera" (-z of the camera, made horizontal).
 
-    The horizontal directions of the parts' axes vote modulo 90 degrees (kernel ``kernel_deg``, weight: part
-    weight times the axis's horizontal length, squared). Falls back to "towards the camera" alone."""
+    The horizontal parts of the surface directions vote modulo 90 degrees (kernel ``kernel_deg``, weight: the
+    direction's weight times its horizontal length, squared). Falls back to "towards the camera" alone."""
     up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     towards_camera = np.array([0.0, 0.0, -1.0]) - up * -up[2]
     if np.linalg.norm(towards_camera) < 1e-6:  # looking straight down: any horizontal reference
         towards_camera = np.array([1.0, 0.0, 0.0]) - up * up[0]
     e1 = towards_camera / np.linalg.norm(towards_camera)
     e2 = np.cross(up, e1)
-    rotations = np.asarray(rotations, dtype=np.float64)
-    weights = np.ones(len(rotations)) if weights is None else np.asarray(weights, dtype=np.float64)
-    axes = rotations.transpose(0, 2, 1).reshape(-1, 3)  # every part's three axes
-    axis_weights = np.repeat(weights, 3)
-    x, y = axes @ e1, axes @ e2
+    directions = np.asarray(directions, dtype=np.float64)
+    x, y = directions @ e1, directions @ e2
     horizontal = x**2 + y**2
     phase = np.arctan2(y, x) * 4.0  # quarter turns fold together
-    grid = np.radians(np.arange(-45.0, 45.0, GRID_STEP_DEG))
+    grid = np.radians(np.arange(-45.0, 45.0, FINE_STEP_DEG))
     difference = np.angle(np.exp(1j * (grid[:, None] * 4.0 - phase[None, :]))) / 4.0
-    scores = (axis_weights * horizontal**2 * np.exp(-0.5 * (np.degrees(difference) / kernel_deg) ** 2)).sum(1)
-    if scores.max() < 1e-6:
+    scores = (np.asarray(weights) * horizontal**2 * np.exp(-0.5 * (np.degrees(difference) / kernel_deg) ** 2)).sum(1)
+    if scores.max() < 1e-9:
         return e1
     yaw = grid[int(np.argmax(scores))]  # in [-45, 45): the quarter turn nearest e1
     return np.cos(yaw) * e1 + np.sin(yaw) * e2
