@@ -6,11 +6,17 @@ configuration is valid when no link and no held part touches the world and no tw
 Pure geometry: forward kinematics comes from the URDF chain of :mod:`planning.kinematics`, not from a simulator.
 
 Speed (every planner calls this thousands of times): the chain is compiled once into seven revolute joints and
-constant transforms, so forward kinematics is one batched Rodrigues formula and seven 4x4 products; every moving
-body (link hull, held-part piece) carries an oriented box, whose world-axis-aligned bounds are computed for all
-bodies in one numpy expression; the broad phase tests all bodies against all world boxes at once; FCL transforms
-are set only on bodies that reach the narrow phase. The last configuration's poses are cached, so
+constant transforms, so forward kinematics is one batched Rodrigues formula and seven 4x4 products, for one
+configuration or a batch (:meth:`RobotCollisionChecker.first_invalid`); every moving body (link hull, held-part
+piece) and every world piece carries an oriented box. Broad phase in numpy for all bodies and configurations at
+once: the bodies' boxes swept over the batch against the world's axis-aligned boxes, then per configuration the
+axis-aligned boxes, then the oriented boxes' face axes (separating-axis test); FCL's exact convex test only on the
+pairs left, with transforms set only on the bodies involved. The last configuration's poses are cached, so
 ``is_valid(q)`` followed by ``first_collision(q)`` does forward kinematics once.
+
+Straight joint-space segments (:meth:`RobotCollisionChecker.segment_valid`) are checked at configurations spaced
+so that no point of the robot or the held part moves more than ``max_step_m`` between two of them (a bound from
+each joint's distance to the farthest point it moves), coarse to fine.
 """
 
 from __future__ import annotations
@@ -198,10 +204,11 @@ class RobotCollisionChecker:
     """Validity of arm configurations in a world that the caller may replace.
 
     world_from_base: (4, 4) the robot base in the world frame (metres).
-    obstacles: name -> (ConvexPart, world_from_part (4, 4)) of everything the robot must not touch.
-    Broad phase: axis-aligned boxes in numpy, all moving bodies against all world pieces at once (FCL's managers
-    hand back fresh Python wrappers in their callbacks, so the bodies could not be named); narrow phase:
-    ``fcl.collide`` on convex pairs. Not thread-safe (FCL objects and the pose cache are shared).
+    obstacles: name -> (ConvexPart, world_from_part (4, 4)) of everything the robot must not touch; replace them
+    with :meth:`set_obstacles`, skip some for one query with ``ignore``.
+    Broad phase in numpy (FCL's managers hand back fresh Python wrappers in their callbacks, so the bodies could not
+    be named); narrow phase: ``fcl.collide`` on convex pairs. Not thread-safe (FCL objects and the pose cache are
+    shared).
     """
 
     def __init__(self, world_from_base: np.ndarray, obstacles: dict[str, tuple[ConvexPart, np.ndarray]],
