@@ -74,17 +74,21 @@ def test_held_part_collides_with_world():
 
 
 def cluttered_world():
-    """The table, a wall in front of the robot and a post beside it: real boxes, world frame, metres."""
+    """The table, a wall in front of the robot, a post beside it and a tilted bar behind: real boxes, world frame,
+    metres."""
     world = table_world()
     for name, size, position in (("wall", [0.3, 0.04, 0.5], [0.5, 0.0, 0.25]),
                                  ("post", [0.06, 0.06, 0.6], [0.1, 0.45, 0.3])):
         world_from_box = np.eye(4)
         world_from_box[:3, 3] = position
         world[name] = (ConvexPart.from_mesh(name, trimesh.creation.box(size)), world_from_box)
+    world_from_bar = trimesh.transformations.euler_matrix(0.4, 0.3, 0.7)  # turned: its boxes are not axis-aligned
+    world_from_bar[:3, 3] = [-0.3, -0.35, 0.35]
+    world["bar"] = (ConvexPart.from_mesh("bar", trimesh.creation.box([0.5, 0.05, 0.03])), world_from_bar)
     return world
 
 
-def brute_force_valid(checker, world, q):
+def brute_force_valid(checker, world, q, held=None):
     """Every link hull against every world piece and every checked link pair with FCL, no broad phase, link poses
     from the URDF chain: an independent reference for the checker's answer."""
     positions = dict(zip(ARM_JOINTS, q)) | {finger: checker.opening_m / 2 for finger in FINGER_JOINTS}
@@ -98,12 +102,17 @@ def brute_force_valid(checker, world, q):
                                                     fcl.Transform(matrix[:3, :3], matrix[:3, 3]))))
     pieces = [fcl.CollisionObject(g, fcl.Transform(m[:3, :3], m[:3, 3]))
               for part, m in world.values() for g in part.geometries]
+    if held is not None:  # (ConvexPart, tcp_from_part): its pieces go with the TCP
+        world_from_part = base_from_link["panda_grasptarget"] @ held[1]
+        links += [("held", fcl.CollisionObject(g, fcl.Transform(world_from_part[:3, :3], world_from_part[:3, 3])))
+                  for g in held[0].geometries]
 
     def touch(a, b):
         return fcl.collide(a, b, fcl.CollisionRequest(), fcl.CollisionResult()) > 0
 
     if any(touch(obj, piece) for link, obj in links if link != BASE_LINK for piece in pieces):
         return False
+    links = [(name, obj) for name, obj in links if name != "held"]  # the held part is not checked against links
     return not any(touch(a, b) for i, (name_a, a) in enumerate(links) for name_b, b in links[i + 1:]
                    if name_a != name_b and frozenset((name_a, name_b)) not in ALLOWED_SELF_PAIRS)
 
@@ -121,6 +130,17 @@ def test_agrees_with_brute_force_fcl():
     reference = [brute_force_valid(checker, world, q) for q in configurations]
     assert ours == reference
     assert 0.2 < np.mean(ours) < 0.9  # both answers occur: the comparison means something
+    # holding a turned plank, in batches
+    tcp_from_part = trimesh.transformations.euler_matrix(0.3, 0.0, 0.5)
+    tcp_from_part[:3, 3] = [0.0, 0.0, 0.05]
+    plank = ConvexPart.from_mesh("plank", trimesh.creation.box([0.35, 0.03, 0.02]))
+    checker.hold(plank, tcp_from_part, opening_m=0.03)
+    reference = np.array([brute_force_valid(checker, world, q, (plank, tcp_from_part)) for q in configurations])
+    assert 0.2 < reference.mean() < 0.9
+    for start in range(0, len(configurations), 25):
+        chunk = reference[start:start + 25]
+        expected = None if chunk.all() else int(np.argmin(chunk))
+        assert checker.first_invalid(configurations[start:start + 25]) == expected
 
 
 def test_set_obstacles_replaces_the_world():
@@ -131,7 +151,7 @@ def test_set_obstacles_replaces_the_world():
     del world["table"]
     checker.set_obstacles(world)
     assert checker.is_valid(into_table)  # the same configuration, answered again after the world changed
-    assert checker.obstacle_names == {"wall", "post"}
+    assert checker.obstacle_names == {"wall", "post", "bar"}
     # reaching forward at the wall's height: home with the shoulder lowered towards the wall
     reach = np.array([0.0, 0.6, 0.0, -1.2, 0.0, 1.8, 0.785])
     hit = checker.first_collision(reach)
