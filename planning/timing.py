@@ -66,7 +66,7 @@ class TimedPath:
 
 MAX_DEVIATION_RAD = 0.05  # how far (joint-space distance) a blend may leave the planned path
 SPEED_FRACTIONS = (1.0, 0.8, 0.6, 0.45, 0.3, 0.2, 0.1)  # blend speeds tried, of the fastest along both segments
-DISTANCE_FRACTIONS = (1.0, 0.6, 0.35, 0.2, 0.1)  # blend distances tried, of half the shorter neighbouring segment
+DISTANCE_FRACTIONS = (1.0, 0.6, 0.35, 0.2, 0.1)  # blend distances tried, of 49% of the shorter neighbouring segment
 _DEVIATION_SAMPLES = 12  # samples per blend when measuring how far it leaves the path
 _SWEEPS = 2  # coordinate-descent passes over the waypoints
 
@@ -150,7 +150,7 @@ def _stays_on_segment(piece) -> bool:
 def plan_corners(waypoints: np.ndarray, limits: JointLimits, max_deviation_rad: float = MAX_DEVIATION_RAD,
                  allowed: Sequence[float] | None = None) -> list[Corner]:
     """A :class:`Corner` per waypoint (stops at the ends): per interior waypoint, the blend distance (a fraction in
-    :data:`DISTANCE_FRACTIONS` of half the shorter neighbouring segment, at most ``allowed[k]`` when given) and
+    :data:`DISTANCE_FRACTIONS` of 49% of the shorter neighbouring segment, at most ``allowed[k]`` when given) and
     speed (a fraction in :data:`SPEED_FRACTIONS` of the fastest along both segments), refined by a pattern search,
     that make the pieces around it quickest while the blend stays within ``max_deviation_rad`` of the path and the
     straight pieces do not overshoot; or a stop. Coordinate descent over the waypoints, starting from stops
@@ -179,6 +179,9 @@ def plan_corners(waypoints: np.ndarray, limits: JointLimits, max_deviation_rad: 
                 return np.inf
             if blend < 0 and not _stays_on_segment(piece):
                 return np.inf
+            if blend < 0 and not isinstance(piece, StraightSegment) and _blend_deviation(
+                    piece, points[i], points[i], points[i + 1]) > max_deviation_rad:
+                return np.inf  # a straight piece Ruckig could not keep on its line (e.g. of zero length)
             if blend >= 0 and _blend_deviation(piece, points[i], waypoints[first + blend],
                                                points[i + 1]) > max_deviation_rad:
                 return np.inf
@@ -189,7 +192,7 @@ def plan_corners(waypoints: np.ndarray, limits: JointLimits, max_deviation_rad: 
         for k in range(1, count - 1):
             if lengths[k - 1] < 1e-9 or lengths[k] < 1e-9 or float(units[k - 1] @ units[k]) < -0.999:
                 continue  # a repeated waypoint or a reversal: stop there
-            room = 0.5 * min(lengths[k - 1], lengths[k])
+            room = 0.49 * min(lengths[k - 1], lengths[k])  # neighbouring blends never meet
             if allowed is not None:
                 room = min(room, allowed[k])
             fastest = min(_fastest(units[k - 1], limits), _fastest(units[k], limits))
