@@ -24,7 +24,8 @@ from planning.collision import ConvexPart
 from planning.disassembly import SequenceResult
 from planning.fixture import PAD_HEIGHT_M, fixture_pads
 from planning.grasp import Grasp, feasible_grasps
-from planning.kitting import KittingArea, KittingError, KittingSlot, Reach, plan_kitting
+from planning.gripper import clearance_gripper
+from planning.kitting import HAND_CLEARANCE_M, KittingArea, KittingError, KittingSlot, Reach, plan_kitting
 from planning.motion import MotionSettings
 from planning.pose import Pose
 from planning.robot_collision import RobotCollisionChecker
@@ -289,7 +290,8 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
                     if _distance(targets[n], assembly.part(n).mesh, targets[name], assembly.part(name).mesh)
                     < NEAR_TARGET_M]
             ranked[name] = feasible_grasps(candidates[name], targets[name], near + pad_obstacles,
-                                               steps[name].insertion_direction, floor_z=scene.table.top_z)
+                                           steps[name].insertion_direction, floor_z=scene.table.top_z,
+                                           gripper=clearance_gripper(HAND_CLEARANCE_M))
 
         def ok_at_target(name: str, grasp: Grasp) -> bool:
             return kit_reach.at_target(name, grasp) is not None

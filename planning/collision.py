@@ -169,9 +169,9 @@ def signed_distance(part_a: ConvexPart, world_from_a: Pose, part_b: ConvexPart, 
 
 def shrunk(part: ConvexPart, margin_m: float) -> ConvexPart:
     """``part`` with every convex piece pulled in by about ``margin_m`` on each side (out when negative), scaled
-    about its centre along the part frame's axes (exact for axis-aligned boxes). A held part checked this way may slide along the
-    faces it touches at its target without counting as a collision, while still colliding with anything it
-    would cut into by more than the margin."""
+    about its centre along the part frame's axes (exact for axis-aligned boxes). A held part checked this way
+    may slide along the faces it touches at its target without counting as a collision, while still colliding
+    with anything it would cut into by more than the margin."""
     pieces = []
     for vertices in part.piece_vertices:
         low, high = vertices.min(axis=0), vertices.max(axis=0)

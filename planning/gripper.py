@@ -38,6 +38,7 @@ for the mesh-mesh quirk). The one case FCL cannot see (a piece wholly *inside* a
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 import xml.etree.ElementTree as ET
@@ -328,3 +329,20 @@ class GripperCollisionModel:
 def default_gripper() -> GripperCollisionModel:
     """The collision model of pybullet_data's Panda hand (built once)."""
     return GripperCollisionModel()
+
+
+def _grown(vertices: np.ndarray, margin_m: float) -> np.ndarray:
+    low, high = vertices.min(axis=0), vertices.max(axis=0)
+    centre, extent = 0.5 * (low + high), high - low
+    return (vertices - centre) * ((extent + 2.0 * margin_m) / np.maximum(extent, 1e-12)) + centre
+
+
+@functools.lru_cache(maxsize=4)
+def clearance_gripper(margin_m: float) -> GripperCollisionModel:
+    """The hand and fingers grown by about ``margin_m`` on every side (scaled about each piece's centre): a grasp
+    clear of obstacles with this model keeps that clearance, which a simulator's or a real hand's slightly
+    larger geometry needs."""
+    g = load_hand_geometry()
+    grown = dataclasses.replace(g, hand_vertices=_grown(g.hand_vertices, margin_m),
+                                finger_vertices=_grown(g.finger_vertices, margin_m))
+    return GripperCollisionModel(grown)

@@ -35,8 +35,11 @@ import trimesh
 
 from planning.fixture import FINGER_CLEARANCE_M, MIN_PAD_FRACTION
 from planning.grasp import Grasp, feasible_grasps
+from planning.gripper import clearance_gripper
 from planning.pose import Pose
 
+HAND_CLEARANCE_M = 0.002  # grasps in the kit keep this from pedestals and neighbours (real hands are larger)
+HAND = clearance_gripper(HAND_CLEARANCE_M)
 NEIGHBOUR_REACH_M = 0.25  # parts whose footprints are farther apart than this cannot touch each other's hand
 MAX_PLACES_PER_POSE = 40  # places tried (with grasp checks) for one stable pose before the next pose
 RADIAL_STEP_M = 0.03
@@ -467,7 +470,7 @@ class _Layout:
         own = [] if pedestal is None else [(pedestal.mesh(), pedestal.world_from_pedestal)]
         obstacles = own + self.obstacles_at_pick(name, corners)
         at_pick = {_grasp_key(g) for g in feasible_grasps(grasps, world_from_part, obstacles, None,
-                                                          floor_z=self.area.table_z_m)}
+                                                          floor_z=self.area.table_z_m, gripper=HAND)}
         chosen, reached = None, None
         for grasp in (g for g in grasps if _grasp_key(g) in at_pick):  # caller's order (best at target first)
             key = (name, _grasp_key(grasp))
@@ -494,7 +497,7 @@ class _Layout:
                 continue
             support = [] if slot.pedestal is None else [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal)]
             if not feasible_grasps([slot.grasp], slot.world_from_part, added + support, None,
-                                   floor_z=self.area.table_z_m):
+                                   floor_z=self.area.table_z_m, gripper=HAND):
                 return None
             if not self.reach.still_clear(slot.reach, added):
                 return None
