@@ -41,7 +41,7 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__)
 
 from cell.render import render_assembly  # noqa: E402
 from perception.evaluate import METHOD_NAMES  # noqa: E402
-from perception.evaluate_assemblies import evaluate_assemblies, truth_targets  # noqa: E402
+from perception.evaluate_assemblies import assembly_folders, evaluate_assemblies, renderable, truth_targets  # noqa: E402
 from perception.placement import place_parts  # noqa: E402
 from perception.predict import prepare_parts  # noqa: E402
 from perception.synth import generate  # noqa: E402
@@ -124,10 +124,11 @@ import json, resource, time
 import numpy as np
 t0 = time.perf_counter()
 from cell.render import render_assembly
+from perception.evaluate_assemblies import renderable
 from perception.predict import predict
 from planning.assembly import read_assembly
 assembly = read_assembly({str(assembly_folder)!r})
-image = render_assembly(assembly, np.random.default_rng(0)).rgb
+image = render_assembly(renderable(assembly), np.random.default_rng(0)).rgb
 meshes = {{p.name: p.mesh for p in assembly.parts}}
 t1 = time.perf_counter(); predict(image, meshes, {str(checkpoint)!r}); t2 = time.perf_counter()
 warm = []
@@ -140,20 +141,19 @@ print(json.dumps({{"import_s": t1 - t0, "first_call_s": t2 - t1, "warm_median_s"
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 
-def way_back_and_up_noise(sets: dict[str, Path], per_set: int, sigmas=(0.0, 2.0, 5.0, 10.0, 15.0)) -> list[str]:
+def way_back_and_up_noise(groups: dict[str, list[Path]], sigmas=(0.0, 2.0, 5.0, 10.0, 15.0)) -> list[str]:
     """The way from the network's frame to metres and up, fed the network's exact targets (sigma 0), then with
-    every part's rotation turned by sigma degrees about a random axis: the up-axis error each estimate gives."""
+    every part's rotation turned by sigma degrees about a random axis: the up-axis error each estimate gives.
+    groups: label -> assembly folders (object i of a group renders from ``default_rng([RENDER_SEED, i])``)."""
     rng = np.random.default_rng(0)
     settings = {"surfaces + stable face (default)": UpSettings(), "surfaces only": UpSettings(use_stable_poses=False)}
-    errors = {(name, sigma): [] for name in settings for sigma in sigmas}
+    errors = {(group, name, sigma): [] for group in groups for name in settings for sigma in sigmas}
     prior_errors, translation_mm, rotation_deg = [], [], []
-    for label, folder in sets.items():
-        if label == "real furniture":
-            continue
-        for index, path in enumerate(sorted(p for p in folder.iterdir() if p.is_dir())[:per_set]):
+    for group, folders in groups.items():
+        for index, path in enumerate(folders):
             assembly = read_assembly(path)
             parts = prepare_parts([p.mesh for p in assembly.parts])
-            view = render_assembly(assembly, np.random.default_rng([RENDER_SEED, index]))
+            view = render_assembly(renderable(assembly), np.random.default_rng([RENDER_SEED, index]))
             bounds = assembly.bounds()
             quat, trans = truth_targets(view, parts, view.camera_from_assembly.apply(bounds.mean(axis=0)))
             up_true = view.camera_from_assembly.rotation[:, 2]
@@ -165,7 +165,7 @@ def way_back_and_up_noise(sets: dict[str, Path], per_set: int, sigmas=(0.0, 2.0,
                 noisy = np.stack([(t @ Pose(np.zeros(3), q)).quat_wxyz for t, q in zip(turns, quat)])
                 for name, setting in settings.items():
                     placement = place_parts(noisy, trans, parts.normalized, parts.meshes, setting)
-                    errors[(name, sigma)].append(angle_deg(placement.up.up_camera, up_true))
+                    errors[(group, name, sigma)].append(angle_deg(placement.up.up_camera, up_true))
                     if sigma == 0 and name.endswith("(default)"):
                         translation_mm += [1000 * np.linalg.norm(a.position - b.position)
                                            for a, b in zip(placement.camera_from_part, view.camera_from_part)]
@@ -176,12 +176,13 @@ def way_back_and_up_noise(sets: dict[str, Path], per_set: int, sigmas=(0.0, 2.0,
              f"distance comes from its size), rotations within {np.max(rotation_deg):.1e} deg. Guessing the mid "
              f"elevation (30 deg) instead of estimating up: error mean {np.mean(prior_errors):.1f} deg, within 5 deg "
              f"{100 * np.mean(np.array(prior_errors) <= 5):.0f}%.", "",
-             "| up estimate | " + " | ".join(f"sigma {s:g} deg" for s in sigmas) + " |", "|---" * (len(sigmas) + 1)
-             + "|"]
-    for name in settings:
-        cells = [np.array(errors[(name, s)]) for s in sigmas]
-        lines.append(f"| {name} | " + " | ".join(f"{e.mean():.2f} / {np.percentile(e, 95):.2f} / "
-                                                 f"{100 * np.mean(e <= 5):.0f}%" for e in cells) + " |")
+             "| objects | up estimate | " + " | ".join(f"sigma {s:g} deg" for s in sigmas) + " |",
+             "|---" * (len(sigmas) + 2) + "|"]
+    for group, folders in groups.items():
+        for name in settings:
+            cells = [np.array(errors[(group, name, s)]) for s in sigmas]
+            lines.append(f"| {group} ({len(folders)}) | {name} | " + " | ".join(
+                f"{e.mean():.2f} / {np.percentile(e, 95):.2f} / {100 * np.mean(e <= 5):.0f}%" for e in cells) + " |")
     return lines
 
 
@@ -246,9 +247,12 @@ def main() -> None:
     lines = [f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores. {args.count} objects "
              f"per set, {args.views} view(s) each.", ""]
     if args.frames:
+        groups = {"procedural": [p for folder in sets.values() for p in sorted(folder.iterdir())[:args.frames]]}
+        if args.furniture:
+            groups["real furniture"] = assembly_folders(args.furniture)
         lines += ["Way back to metres and up-axis recovery, without the network (truth targets, then every part's "
                   "rotation turned by sigma about a random axis; cells: up-axis error mean / p95 deg / within 5 deg):",
-                  "", *way_back_and_up_noise(sets, args.frames), ""]
+                  "", *way_back_and_up_noise(groups), ""]
     if args.furniture:
         sets["real furniture"] = args.furniture
     results: dict[str, dict] = {}
