@@ -62,7 +62,7 @@ def object_files(roots: Sequence[str | Path], split: str, categories: Sequence[s
 
 class ViewDataset(Dataset):
     """Every view of every object file: index i -> (file, view). Files are read lazily, one sample at a time
-    (only the arrays a sample needs are decompressed)."""
+    (only the arrays a sample needs are decompressed). ``limit``: at most this many views, evenly spread."""
 
     def __init__(self, files: Sequence[str | Path], limit: int = 0):
         self.index: list[tuple[Path, int]] = []
@@ -70,8 +70,11 @@ class ViewDataset(Dataset):
             with np.load(path, allow_pickle=False) as data:
                 views = data["pose_quat_wxyz"].shape[0]
             self.index += [(Path(path), k) for k in range(views)]
-        if limit:
-            self.index = self.index[:limit]
+        if limit and limit < len(self.index):
+            # evenly spread over the sorted files, so that a limited validation set sees every category and
+            # dataset folder rather than the first one only
+            picks = np.linspace(0, len(self.index) - 1, limit).round().astype(int)
+            self.index = [self.index[k] for k in picks]
 
     def __len__(self) -> int:
         return len(self.index)
