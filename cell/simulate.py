@@ -2,23 +2,32 @@
 
 The cell is rebuilt in a headless (DIRECT) client with gravity (-9.81 m/s^2 along world -z): the Panda, the static
 bodies (table, jig pads, pedestals) and every loose part as a dynamic compound of its convex pieces
-(:func:`planning.convex.convex_pieces`), its mass and inertia from its volume at :attr:`SimSettings.density_kg_m3`.
-The parts first settle for :attr:`SimSettings.settle_s` where they lie; one that moves more than
-:attr:`SimSettings.settle_tolerance_m` is reported (the start was not at rest).
+(:func:`planning.convex.convex_pieces`, each inset by half of :attr:`SimSettings.joint_clearance_m`: parts planned
+face to face meet with that clearance, as real ones do), its mass and inertia from its volume at
+:attr:`SimSettings.density_kg_m3`. The parts first settle for :attr:`SimSettings.settle_s` where they lie; one
+that moves more than :attr:`SimSettings.settle_tolerance_m` is reported (the start was not at rest).
 
 The arm follows the program's samples at ``rate_hz`` (one physics step per sample) under position control with the
 Franka's joint torque limits. A gripper step that narrows the opening closes the fingers (position control,
-:attr:`SimSettings.finger_force_n` per finger); when it ends, the part it names is welded to the hand (a fixed
-constraint at their relative pose at that moment) only if both fingers touch it, otherwise the grasp fails and is
-reported. A gripper step that widens the opening releases the weld; the released part is then fastened (fixed
-constraints standing for connectors) to those of its ``fasten_to`` parts it touches, and to the world if
-``fasten_to`` holds ``"fixture"`` and it touches a static body. After the program the world settles again and every
-part's final pose is compared with its target, modulo the part's own symmetries (:mod:`cell.symmetry`).
+:attr:`SimSettings.finger_force_n` per finger); when it ends, the part it names is welded to the hand only if both
+fingers touch it, otherwise the grasp fails and is reported. The weld holds the part at the grasp the program
+plans (the TCP where the program closes, and the part where it starts) when the part lies within
+:attr:`SimSettings.grasp_seat_m` and ``grasp_seat_deg`` of it: the closing fingers centre and align a real part,
+while PyBullet's finger contacts settle it a fraction of a millimetre and about a degree off (they creep under the
+squeeze); farther off, it holds the part where it lies, and the error carries through to the check. While welded,
+the part does not collide with the robot (see :meth:`_Run._weld`). A gripper step that widens the opening releases
+the weld; the released part is then fastened (standing for connectors) to those of its ``fasten_to`` parts that lie
+within :attr:`SimSettings.fasten_distance_m` of their planned gap to it, and to the jig if ``fasten_to`` holds
+``"fixture"`` and it touches a static body. A part fastened to the jig, directly or through fastened parts, becomes a
+static body where it was released; one fastened only to loose parts is fixed to them by constraints (see
+:meth:`_Run._release`). After the program the world settles again and every part's final pose is compared with its
+target, modulo the part's own symmetries (:mod:`cell.symmetry`).
 
 Unplanned contacts are recorded as events (start, end, program step, the two bodies, deepest penetration):
 
-- a robot link touching anything, except the part it holds, and the part of the pick or place under way during
-  the approach before a grasp, the gripper steps themselves and the retreat after a release;
+- a robot link touching anything, except the part it holds (which it does not collide with), and the part of the
+  pick or place under way during the approach before a grasp, the gripper steps themselves and the retreat after a
+  release;
 - the held part touching anything but the robot, except what it rested on after settling during the grasp and
   the lift after it, and its ``fasten_to`` neighbours (with the static bodies under its target for "fixture") during
   the last motion before its release and the release itself.
@@ -31,7 +40,10 @@ What a program must allow for:
 
 - PyBullet's Panda collision hulls carry a margin of about 1.1 mm that ``changeDynamics`` does not remove: the
   fingers stop (and touch) about 1.1 mm short of a part's face, and robot links touch things about 1 mm early. A
-  close command up to the part's width + 2 mm still grasps; the task planner's width - 4 mm squeezes firmly.
+  close command up to the part's width + 1.5 mm still grasps; the task planner's width - 4 mm squeezes firmly.
+- Where a part slides along a neighbour into its target, the arm must put it there to well within
+  :attr:`SimSettings.joint_clearance_m` (0.5 mm): a part that meets a placed (static) neighbour's edge instead of
+  sliding past it jams, and the jam drags it out of the weld.
 - The fingers move at :attr:`SimSettings.finger_speed_m_s` (0.05 m/s each): a closing step must last at least
   (opening - width) / 2 / 0.05 s plus a few hundredths (the default 0.5 s covers openings up to 4.5 cm wider).
 - Links and hand get the identified masses and inertias of :data:`LINK_DYNAMICS`, and the link pairs of
@@ -49,6 +61,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from scipy.spatial import HalfspaceIntersection
 
 from cell.bullet import BulletClient
 from cell.program import GripperStep, MotionStep, Program
@@ -115,10 +128,13 @@ class SimSettings:
     settle_tolerance_m: float = 0.003  # a part moving more while settling at the start is reported
     density_kg_m3: float = 600.0  # wood
     friction: float = 0.6  # parts and static bodies (the fingers keep the URDF's 1.0)
+    joint_clearance_m: float = 0.0005  # two parts planned face to face meet with this gap (each is inset by half)
     finger_force_n: float = 20.0  # per finger (the URDF's effort limit)
     finger_speed_m_s: float = 0.05  # per finger
     grasp_contact_m: float = 0.0002  # a finger this close to the part (metres, as PyBullet measures) touches it
-    fasten_distance_m: float = 0.002  # a released part this close to a neighbour is fastened to it
+    grasp_seat_m: float = 0.003  # a grasped part this close to its planned grasp (and ...
+    grasp_seat_deg: float = 3.0  # ... turned by less than this) is seated there by the closing fingers
+    fasten_distance_m: float = 0.002  # a released part this much farther from a neighbour than planned is not fastened
     contact_distance_m: float = 0.0  # contact points at this distance or closer (negative: penetration) count
     joint_limit_margin_rad: float = 1e-3  # a joint this far beyond its position limit breaks it
     velocity_tolerance: float = 0.03  # relative: a joint faster than (1 + this) x its velocity limit breaks it
@@ -133,8 +149,9 @@ class SimSettings:
                      "finger_speed_m_s", "grasp_contact_m", "fasten_distance_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"SimSettings.{name} must be positive, got {getattr(self, name)}")
-        if self.settle_s < 0:
-            raise ValueError(f"SimSettings.settle_s must not be negative, got {self.settle_s}")
+        for name in ("settle_s", "grasp_seat_m", "grasp_seat_deg", "joint_clearance_m"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"SimSettings.{name} must not be negative, got {getattr(self, name)}")
         if self.record_every_s is not None and not self.record_every_s > 0:
             raise ValueError(f"SimSettings.record_every_s must be positive or None, got {self.record_every_s}")
 
@@ -143,7 +160,11 @@ class SimSettings:
 @dataclass(frozen=True)
 class PartResult:
     """Where one part ended (world frame). ``position_error_m``: distance of its centre from the target's (metres);
-    ``rotation_error_deg``: smallest rotation to the target over the part's symmetries (degrees)."""
+    ``rotation_error_deg``: smallest rotation to the target over the part's symmetries (degrees).
+    ``grasp_offset_m`` / ``grasp_offset_deg``: how far the part lay from its planned grasp, relative to the hand,
+    when the fingers closed on it (metres at the TCP, degrees; None if never grasped); ``grasp_seated``: whether it
+    was held at the planned grasp (offset within :attr:`SimSettings.grasp_seat_m` and ``grasp_seat_deg``) rather
+    than where it lay."""
 
     name: str
     world_from_final: Pose
@@ -154,13 +175,17 @@ class PartResult:
     fastened_to: tuple[str, ...]  # what it was fastened to at release ("fixture" for the world)
     settle_motion_m: float  # how far its centre moved while settling at the start
     moved_after_release_m: float | None  # how far its centre moved from its release to the end (None: never released)
+    grasp_offset_m: float | None = None
+    grasp_offset_deg: float | None = None
+    grasp_seated: bool = False
 
     def to_json(self) -> dict:
         return {"name": self.name, "world_from_final": self.world_from_final.to_dict(),
                 "position_error_m": self.position_error_m, "rotation_error_deg": self.rotation_error_deg,
                 "within_tolerance": self.within_tolerance, "grasped": self.grasped,
                 "fastened_to": list(self.fastened_to), "settle_motion_m": self.settle_motion_m,
-                "moved_after_release_m": self.moved_after_release_m}
+                "moved_after_release_m": self.moved_after_release_m, "grasp_offset_m": self.grasp_offset_m,
+                "grasp_offset_deg": self.grasp_offset_deg, "grasp_seated": self.grasp_seated}
 
 
 @dataclass(frozen=True)
@@ -276,6 +301,21 @@ def mass_properties(mesh: trimesh.Trimesh, density_kg_m3: float) -> _MassPropert
                            tuple(float(max(m, 1e-9)) for m in moments))
 
 
+def inset(piece: trimesh.Trimesh, distance_m: float) -> trimesh.Trimesh:
+    """The convex ``piece`` with every face moved inwards by ``distance_m`` (metres; the intersection of its faces'
+    half-spaces); a piece too thin for that is returned as it is."""
+    hull = piece.convex_hull
+    if distance_m <= 0.0:
+        return hull
+    normals = np.asarray(hull.face_normals, dtype=np.float64)
+    offsets = distance_m - np.einsum("ij,ij->i", normals, hull.triangles[:, 0])  # inside: normals @ x + offsets <= 0
+    centre = np.asarray(hull.centroid, dtype=np.float64)
+    if np.max(normals @ centre + offsets) > -1e-6:
+        return hull
+    corners = HalfspaceIntersection(np.hstack([normals, offsets[:, None]]), centre).intersections
+    return trimesh.convex.convex_hull(corners)
+
+
 def _write_pieces_obj(pieces: Sequence[trimesh.Trimesh], path: Path) -> None:
     """One OBJ object per convex piece: PyBullet loads such a file as a compound of convex hulls."""
     lines, offset = [], 1
@@ -315,7 +355,8 @@ class _Cell:
             for part, rgba in zip(parts, _palette(len(parts))):
                 props = mass_properties(part.mesh, settings.density_kg_m3)
                 self.part_from_com[part.name] = props.part_from_com
-                self.parts[part.name] = self._add_body(Path(folder), part.mesh, part.world_from_start, props, rgba)
+                self.parts[part.name] = self._add_body(Path(folder), part.mesh, part.world_from_start, props, rgba,
+                                                       inset_m=0.5 * settings.joint_clearance_m)
         self.names.update({v: k for k, v in self.static.items()})
         self.names.update({v: k for k, v in self.parts.items()})
 
@@ -332,11 +373,11 @@ class _Cell:
                 pb.setCollisionFilterPair(self.robot, self.robot, index_of[a], index_of[b], 0, physicsClientId=cid)
 
     def _add_body(self, folder: Path, mesh: trimesh.Trimesh, world_from_body: Pose, props: _MassProperties | None,
-                  rgba) -> int:
+                  rgba, inset_m: float = 0.0) -> int:
         pb, cid = self.pb, self.cid
-        path = folder / f"{mesh_key(mesh)}.obj"
+        path = folder / f"{mesh_key(mesh)}-{inset_m:.6f}.obj"
         if not path.exists():
-            _write_pieces_obj(convex_pieces(mesh), path)
+            _write_pieces_obj([inset(piece, inset_m) for piece in convex_pieces(mesh)], path)
         collision = pb.createCollisionShape(pb.GEOM_MESH, fileName=str(path), physicsClientId=cid)
         visual_mesh = mesh.copy()
         visual_mesh.unmerge_vertices()  # flat shading: one normal per face
@@ -371,6 +412,17 @@ class _Cell:
 
     def body_name(self, body: int, link: int) -> str:
         return f"{ROBOT}/{self.link_names[link]}" if body == self.robot else self.names.get(body, f"body {body}")
+
+    def distance(self, part_a: str, part_b: str, cutoff_m: float = 0.05) -> float:
+        """Closest distance between two parts as they are (metres, 0 if they overlap, infinite beyond ``cutoff_m``)."""
+        points = self.pb.getClosestPoints(self.parts[part_a], self.parts[part_b], cutoff_m, physicsClientId=self.cid)
+        return max(0.0, min((p[8] for p in points), default=np.inf))
+
+    def set_robot_collisions(self, name: str, enabled: bool) -> None:
+        """Let the robot's links collide with part ``name`` or not."""
+        for link in self.link_names:
+            self.pb.setCollisionFilterPair(self.robot, self.parts[name], link, -1, int(enabled),
+                                           physicsClientId=self.cid)
 
     def touching(self, body: int, others: Mapping[str, int], distance_m: float) -> list[str]:
         """Names of ``others`` within ``distance_m`` of ``body`` (closest points, after the last collision pass)."""
@@ -476,7 +528,8 @@ class _EventLog:
 class _Run:
     """One simulation: the cell, the program's clock and everything recorded."""
 
-    def __init__(self, cell: _Cell, initial_width_m: float, parts: Sequence[SimPart], settings: SimSettings) -> None:
+    def __init__(self, cell: _Cell, initial_width_m: float, parts: Sequence[SimPart], settings: SimSettings,
+                 planned_grasps: Mapping[int, Pose] | None = None) -> None:
         self.cell, self.pb, self.cid = cell, cell.pb, cell.cid
         self.settings = settings
         self.parts = {p.name: p for p in parts}
@@ -486,26 +539,37 @@ class _Run:
         self.held: str | None = None
         self.weld: int | None = None
         self.grasped: set[str] = set()
+        self.planned_grasps = dict(planned_grasps or {})  # id(closing step) -> tcp_from_part the plan grasps at
+        self.grasp_offsets: dict[str, tuple[float, float, bool]] = {}  # part -> (metres, degrees, seated)
+        self.released_from_hand: str | None = None  # released; the robot ignores it until the hand has opened
         self.fastened: dict[str, list[str]] = {name: [] for name in self.parts}
+        self.grounded: set[str] = set()  # fastened to the jig, directly or through fastened parts
         self.released_at: dict[str, Pose] = {}  # world_from_part when last released
         self.grasp_failures: list[GraspFailure] = []
         self.contacts, self.limits = _EventLog(), _EventLog()
         self.frames: list[np.ndarray] = []
         self.next_frame_s = 0.0 if settings.record_every_s else np.inf
         self.start_supports: dict[str, frozenset[str]] = {}
+        self.planned_gaps: dict[tuple[str, str], float] = {}  # (part, fasten_to neighbour) -> gap at their targets
         self.target_supports = self._target_supports()
         self.arm_q = np.zeros(7)
         self.arm_qd = np.zeros(7)
 
     # --- set-up -----------------------------------------------------------------------------------------------------
     def _target_supports(self) -> dict[str, frozenset[str]]:
-        """Static bodies each part touches at its target (what "fixture" stands for), found by placing it there."""
+        """Static bodies each part touches at its target (what "fixture" stands for), found by placing it there;
+        fills :attr:`planned_gaps` too."""
         supports = {}
         for name, part in self.parts.items():
             self.cell.set_part(name, part.world_from_target)
             self.pb.performCollisionDetection(physicsClientId=self.cid)
             supports[name] = frozenset(self.cell.touching(self.cell.parts[name], self.cell.static,
                                                           self.settings.fasten_distance_m))
+            for other in part.fasten_to:
+                if other != FIXTURE and other != name:
+                    self.cell.set_part(other, self.parts[other].world_from_target)
+                    self.planned_gaps[name, other] = self.cell.distance(name, other)
+                    self.cell.set_part(other, self.parts[other].world_from_start)
             self.cell.set_part(name, part.world_from_start)
         return supports
 
@@ -608,6 +672,9 @@ class _Run:
         self.opening_m = step.width_m
 
     def leave_gripper_step(self, step: GripperStep, role: _StepRole) -> None:
+        if role.opens and self.released_from_hand is not None:  # the fingers are clear of it now
+            self.cell.set_robot_collisions(self.released_from_hand, True)
+            self.released_from_hand = None
         if not role.closes or step.part is None or self.held is not None:
             return
         body = self.cell.parts[step.part]
@@ -617,44 +684,89 @@ class _Run:
         if len(touching) < len(self.cell.panda.fingers):
             self.grasp_failures.append(GraspFailure(step.part, step.label, self.time_s, touching))
             return
-        pb, cid = self.pb, self.cid
-        hand = pb.getLinkState(self.cell.robot, self.cell.panda.hand_link, computeForwardKinematics=True,
-                               physicsClientId=cid)
-        world_from_hand_com = Pose.from_pybullet(hand[0], hand[1])
-        world_from_part_com = Pose.from_pybullet(*pb.getBasePositionAndOrientation(body, physicsClientId=cid))
-        position, orientation = (world_from_hand_com.inverse() @ world_from_part_com).to_pybullet()
-        self.weld = pb.createConstraint(self.cell.robot, self.cell.panda.hand_link, body, -1, pb.JOINT_FIXED,
+        self._weld(step.part, self.planned_grasps.get(id(step)))
+
+    def _weld(self, name: str, planned_tcp_from_part: Pose | None) -> None:
+        """Hold part ``name`` in the hand: at the planned grasp if it lies close to it (the closing fingers centre
+        it and their pads align it; the simulated contacts settle a fraction of a millimetre and of a degree off,
+        as they creep under the squeeze), else where it is. The weld stands for the grip from then on: the robot
+        stops colliding with the part and the fingers stay where they closed. Contacts between the fingers or the
+        hand and a welded part fight the weld, which then creeps by degrees over a carry; and PyBullet's Panda
+        hulls carry a margin of about 1.1 mm, so the part would catch on the arm where the planner leaves it a
+        fraction of a millimetre (contacts between the robot and the part it holds are not reported either)."""
+        pb, cid, cell, settings = self.pb, self.cid, self.cell, self.settings
+        tcp = pb.getLinkState(cell.robot, cell.panda.tcp_link, computeForwardKinematics=True, physicsClientId=cid)
+        world_from_tcp = Pose.from_pybullet(tcp[4], tcp[5])
+        tcp_from_part = world_from_tcp.inverse() @ cell.world_from_part(name)
+        seated = False
+        if planned_tcp_from_part is not None:
+            offset_m, offset_rad = tcp_from_part.inverse().distance(planned_tcp_from_part.inverse())
+            offset_deg = float(np.degrees(offset_rad))
+            seated = offset_m <= settings.grasp_seat_m and offset_deg <= settings.grasp_seat_deg
+            self.grasp_offsets[name] = (float(offset_m), offset_deg, seated)
+            if seated:  # a fixed constraint keeps the offset it starts with: put the part where the fingers seat it
+                tcp_from_part = planned_tcp_from_part
+                cell.set_part(name, world_from_tcp @ tcp_from_part)
+        hand = pb.getLinkState(cell.robot, cell.panda.hand_link, computeForwardKinematics=True, physicsClientId=cid)
+        hand_com_from_part_com = (Pose.from_pybullet(hand[0], hand[1]).inverse() @ world_from_tcp @ tcp_from_part
+                                  @ cell.part_from_com[name])
+        position, orientation = hand_com_from_part_com.to_pybullet()
+        self.weld = pb.createConstraint(cell.robot, cell.panda.hand_link, cell.parts[name], -1, pb.JOINT_FIXED,
                                         [0, 0, 0], position, [0, 0, 0], orientation, [0, 0, 0, 1],
                                         physicsClientId=cid)
         pb.changeConstraint(self.weld, maxForce=_HOLD_FORCE_N, physicsClientId=cid)
-        self.held = step.part
-        self.grasped.add(step.part)
+        cell.set_robot_collisions(name, False)
+        for joint, state in zip(cell.panda.fingers, pb.getJointStates(cell.robot, cell.panda.fingers,
+                                                                      physicsClientId=cid)):
+            pb.setJointMotorControl2(cell.robot, joint, pb.POSITION_CONTROL, targetPosition=state[0],
+                                     force=settings.finger_force_n, maxVelocity=settings.finger_speed_m_s,
+                                     physicsClientId=cid)
+        self.held = name
+        self.grasped.add(name)
 
     def _release(self) -> None:
-        """Remove the weld and fasten the released part to what it touches among its ``fasten_to``."""
+        """Remove the weld and fasten the released part to its ``fasten_to`` neighbours that lie within
+        ``fasten_distance_m`` of their planned gap to it, and to the world if ``fasten_to`` holds "fixture" and it
+        touches a static body.
+
+        A part fastened to the jig, directly or through parts fastened to it, becomes a static body where it is: a
+        chain of fixed constraints between light bodies (PyBullet's iterative solver) creeps under load by
+        millimetres and gives way when a part slides along it, a real fastened assembly on its jig does neither. A
+        part fastened only to loose parts is fixed to them by constraints. Fastened bodies no longer collide with
+        each other (their contacts could only fight the constraints)."""
         pb, cid, cell = self.pb, self.cid, self.cell
         pb.removeConstraint(self.weld, physicsClientId=cid)
         name, self.held, self.weld = self.held, None, None
+        self.released_from_hand = name
         body = cell.parts[name]
         fasten = self.parts[name].fasten_to
         pb.performCollisionDetection(physicsClientId=cid)
         self.released_at[name] = cell.world_from_part(name)
         world_from_com = Pose.from_pybullet(*pb.getBasePositionAndOrientation(body, physicsClientId=cid))
-        neighbours = {n: cell.parts[n] for n in fasten if n != FIXTURE}
-        for other_name in cell.touching(body, neighbours, self.settings.fasten_distance_m):
+        gaps = {n: self.planned_gaps.get((name, n), np.inf) for n in fasten if n != FIXTURE}
+        neighbours = [n for n, gap in gaps.items()
+                      if np.isfinite(gap) and cell.distance(name, n) <= gap + self.settings.fasten_distance_m]
+        supports = (cell.touching(body, cell.static, self.settings.fasten_distance_m) if FIXTURE in fasten else [])
+        grounded = bool(supports) or any(n in self.grounded for n in neighbours)
+        for other_name in neighbours:
             other = cell.parts[other_name]
+            pb.setCollisionFilterPair(body, other, -1, -1, 0, physicsClientId=cid)
+            self.fastened[name].append(other_name)
+            if grounded and other_name in self.grounded:
+                continue  # both fixed to the world
             world_from_other = Pose.from_pybullet(*pb.getBasePositionAndOrientation(other, physicsClientId=cid))
             position, orientation = (world_from_other.inverse() @ world_from_com).to_pybullet()
             constraint = pb.createConstraint(other, -1, body, -1, pb.JOINT_FIXED, [0, 0, 0], position, [0, 0, 0],
                                              orientation, [0, 0, 0, 1], physicsClientId=cid)
             pb.changeConstraint(constraint, maxForce=_HOLD_FORCE_N, physicsClientId=cid)
-            self.fastened[name].append(other_name)
-        if FIXTURE in fasten and cell.touching(body, cell.static, self.settings.fasten_distance_m):
-            position, orientation = world_from_com.to_pybullet()
-            constraint = pb.createConstraint(body, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0], position,
-                                             [0, 0, 0, 1], orientation, physicsClientId=cid)
-            pb.changeConstraint(constraint, maxForce=_HOLD_FORCE_N, physicsClientId=cid)
+        for support in supports:
+            pb.setCollisionFilterPair(body, cell.static[support], -1, -1, 0, physicsClientId=cid)
+        if supports:
             self.fastened[name].append(FIXTURE)
+        if grounded:
+            pb.changeDynamics(body, -1, mass=0.0, physicsClientId=cid)  # static from now on
+            pb.resetBaseVelocity(body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], physicsClientId=cid)
+            self.grounded.add(name)
 
 
 _HOLD_FORCE_N = 5000.0  # welds and fastenings: far above any load in the cell
@@ -679,7 +791,9 @@ def simulate_program(program: Program, parts: Sequence[SimPart], static_bodies: 
         pb.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
         pb.setTimeStep(1.0 / settings.rate_hz, physicsClientId=cid)
         cell = _Cell(client, parts, static_bodies, world_from_robot_base, settings)
-        run = _Run(cell, program.initial_width_m, parts, settings)
+        grasps = _planned_grasps(cell, program, roles, {p.name: p for p in parts},
+                                 lambda index: q[min(np.searchsorted(samples["t"], starts[index]), len(q) - 1)])
+        run = _Run(cell, program.initial_width_m, parts, settings, grasps)
         settle_motion = run.start(q[0])
         count = len(q)
         report_every = max(1, count // 100)
@@ -714,6 +828,19 @@ def simulate_program(program: Program, parts: Sequence[SimPart], static_bodies: 
                             [n for n, m in settle_motion.items() if m > settings.settle_tolerance_m])
 
 
+def _planned_grasps(cell: _Cell, program: Program, roles: Sequence[_StepRole], parts: Mapping[str, SimPart],
+                    q_at_step: Callable[[int], np.ndarray]) -> dict[int, Pose]:
+    """``tcp_from_part`` the program grasps each part at, by closing step (``id``): the TCP where the program holds
+    the arm while it closes (``q_at_step(index)``, forward kinematics) and the part where it starts. Sets the
+    arm: call before :meth:`_Run.start`."""
+    grasps = {}
+    for index, (step, role) in enumerate(zip(program.steps, roles)):
+        if isinstance(step, GripperStep) and role.closes and step.part is not None:
+            world_from_tcp = cell.panda.forward_tcp(np.asarray(q_at_step(index), dtype=np.float64))
+            grasps[id(step)] = world_from_tcp.inverse() @ parts[step.part].world_from_start
+    return grasps
+
+
 def _opening(cell: _Cell) -> float:
     states = cell.pb.getJointStates(cell.robot, cell.panda.fingers, physicsClientId=cell.cid)
     return float(sum(s[0] for s in states))
@@ -730,9 +857,11 @@ def _part_results(run: _Run, settle_motion: dict[str, float]) -> list[PartResult
         released = run.released_at.get(name)
         moved = None if released is None else float(np.linalg.norm(final.apply(symmetry.centre_m)
                                                                    - released.apply(symmetry.centre_m)))
+        offset_m, offset_deg, seated = run.grasp_offsets.get(name, (None, None, False))
         out.append(PartResult(name, final, position, rotation,
                               position <= settings.position_tolerance_m and rotation <= settings.rotation_tolerance_deg,
-                              name in run.grasped, tuple(run.fastened[name]), settle_motion[name], moved))
+                              name in run.grasped, tuple(run.fastened[name]), settle_motion[name], moved, offset_m,
+                              offset_deg, seated))
     return out
 
 
