@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-# Run as a script, this file's folder comes first on sys.path, where benchmarks/perception.py would hide the
+# Run as a script, this file's folder comes first on sys.path, where a module named like a package would hide the
 # perception package: look in the repository root instead.
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))

@@ -1,7 +1,7 @@
 """Perception on held-out objects: the paper's Tables 1 and 2 for Ours and the three baselines, real furniture,
 connectivity before and after repair, the up-axis error, CPU inference time and memory.
 
-    python benchmarks/perception.py --out out/perception_bench --count 200 [--furniture ../shared/furniture]
+    python benchmarks/perception_accuracy.py --out out/perception_bench --count 200 [--furniture ../shared/furniture]
 
 Test sets: ``--count`` procedural objects per category (chair, table, cabinet) and level (3, mixed), drawn as
 ``python -m perception.synth --seed 1000`` draws them (``default_rng([1000, i])``; training used seed 0), written
