@@ -141,8 +141,7 @@ class CellWorld:
     def validity(self, ignore: frozenset[str] = frozenset(), transit: bool = False):
         """``q -> bool`` against the current world, skipping the obstacles named in ``ignore``; ``transit``:
         with every obstacle grown by :data:`TRANSIT_CLEARANCE_M`."""
-        checker = self.transit_checker if transit else self.checker
-        return lambda q: checker.is_valid(np.asarray(q, dtype=np.float64), ignore=ignore)
+        return _Validity(self.transit_checker if transit else self.checker, ignore)
 
     def hold(self, part: str | None, grasp: Grasp | None, opening_m: float,
              margin_m: float = HELD_MARGIN_M) -> None:
@@ -235,13 +234,28 @@ class CellWorld:
         for _ in range(3):
             try:
                 path = plan_joint_path(valid, start_q, goal_q, self.panda.lower_limits, self.panda.upper_limits,
-                                       settings)
+                                       settings, segment_valid=getattr(valid, "segment", None))
             except MotionPlanningError as exc:
                 raise TaskPlanningError(exc.kind, part, stage, str(exc)) from exc
             if all(straight_line_valid(valid, a, b, step_rad=DENSE_CHECK_RAD) for a, b in zip(path[:-1], path[1:])):
                 return path
             settings = replace(settings, check_resolution=settings.check_resolution / 4)
         raise TaskPlanningError("timeout", part, stage, "every planned path grazes an obstacle between OMPL's checks")
+
+
+class _Validity:
+    """``q -> bool`` against a checker's world skipping ``ignore``; ``segment(a, b)`` checks a straight joint
+    segment densely (no point of the robot or the held part moves more than 2 mm between checks)."""
+
+    def __init__(self, checker: RobotCollisionChecker, ignore: frozenset[str]) -> None:
+        self.checker, self.ignore = checker, ignore
+
+    def __call__(self, q) -> bool:
+        return self.checker.is_valid(np.asarray(q, dtype=np.float64), ignore=self.ignore)
+
+    def segment(self, q_from, q_to) -> bool:
+        return self.checker.segment_valid(np.asarray(q_from, dtype=np.float64), np.asarray(q_to, dtype=np.float64),
+                                          ignore=self.ignore)
 
 
 def _timed(world: CellWorld, path: np.ndarray, valid, part: str, stage: str):

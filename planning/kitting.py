@@ -493,13 +493,13 @@ class _Layout:
         for slot in self.slots:
             earlier = self.rank(slot.part) < self.rank(name)
             added = (new_part if earlier else []) + new_static
-            if not added or not self._near(slot, corners):
+            if not added:
                 continue
             support = [] if slot.pedestal is None else [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal)]
-            if not feasible_grasps([slot.grasp], slot.world_from_part, added + support, None,
-                                   floor_z=self.area.table_z_m, gripper=HAND):
+            if self._near(slot, corners) and not feasible_grasps([slot.grasp], slot.world_from_part, added + support,
+                                                                 None, floor_z=self.area.table_z_m, gripper=HAND):
                 return None
-            if not self.reach.still_clear(slot.reach, added):
+            if not self.reach.still_clear(slot.reach, added):  # the arm reaches far beyond the hand
                 return None
         return KittingSlot(name, world_from_part, pedestal, chosen, probability, corners, reached,
                            None if base is None else base.part)
