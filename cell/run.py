@@ -16,10 +16,7 @@ write the report and pictures of what was done, for diagnosis).
 from __future__ import annotations
 
 import argparse
-import os
-import shutil
 import sys
-import tempfile
 import time
 import traceback
 from contextlib import contextmanager
@@ -152,20 +149,13 @@ def _run(args: argparse.Namespace, console: Console) -> int:
 
 def _write_outputs(out: Path, pipeline, report: dict, console: Console) -> None:
     """Everything into a fresh sibling folder, then renamed over ``out``: a complete folder or none."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
+    from cell.report import write_json
+    from planning.assembly import replacing_folder
+
+    with replacing_folder(out) as tmp:
         with console.stage("export", "report, overview, trajectory"):
             pipeline.write(tmp)
-        from cell.report import write_json
-
         write_json(tmp / "report.json", report)
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 if __name__ == "__main__":

@@ -21,6 +21,7 @@ value at fault. Meshes are returned in metres whatever the file's ``units``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -210,6 +211,23 @@ def assembly_to_json(assembly: Assembly) -> dict:
     return {"name": assembly.name, "units": "m", "up": "+z", **assembly.metadata, "parts": parts}
 
 
+@contextlib.contextmanager
+def replacing_folder(folder: str | os.PathLike):
+    """Write a folder whole or not at all: yields a fresh temporary sibling to fill, which replaces ``folder``
+    (an existing one is removed) when the block ends without an exception, and is removed when it raises."""
+    folder = Path(folder)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    try:
+        yield tmp
+        if folder.exists():
+            shutil.rmtree(folder)
+        os.replace(tmp, folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
 def write_assembly(assembly: Assembly, folder: str | os.PathLike, overwrite: bool = False) -> Path:
     """Write ``assembly`` as an assembly folder (metres). The folder appears whole or not at all: everything is
     written to a temporary sibling and renamed into place."""
@@ -221,19 +239,11 @@ def write_assembly(assembly: Assembly, folder: str | os.PathLike, overwrite: boo
         raise AssemblyError(f"{assembly.name}: duplicate part names {names}")
     if folder.exists() and not overwrite:
         raise FileExistsError(f"{folder} already exists")
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
-    try:
+    with replacing_folder(folder) as tmp:
         document = assembly_to_json(assembly)
         for part, entry in zip(assembly.parts, document["parts"]):
             target = tmp / entry["mesh"]
             target.parent.mkdir(parents=True, exist_ok=True)
             target.write_text(trimesh.exchange.obj.export_obj(part.mesh, include_normals=False, include_texture=False))
         (tmp / ASSEMBLY_FILE).write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
-        if folder.exists():
-            shutil.rmtree(folder)
-        os.replace(tmp, folder)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return folder
