@@ -216,20 +216,6 @@ def test_neither_image_nor_poses_is_a_usage_error(small_chair, capsys):
     assert "give --image" in capsys.readouterr().err
 
 
-@pytest.fixture(scope="module")
-def tiny_checkpoint(tmp_path_factory) -> Path:
-    """A real network, trained for two steps on four procedural tables (tiny config)."""
-    from perception.dataset.build import BuildConfig, build
-    from perception.train.checkpoint import MODEL
-    from perception.train.cli import main as train_main
-
-    root = tmp_path_factory.mktemp("tiny")
-    build(BuildConfig(category="chair", level="mixed", count=4, views=1, seed=3), root / "data", progress=False)
-    assert train_main(["--config", "tiny", "--data", str(root / "data"), "--out", str(root / "run"),
-                       "--max-steps", "2", "--no-progress"]) == 0
-    return root / "run" / MODEL
-
-
 def test_full_run_from_the_picture(small_chair, tiny_checkpoint, tmp_path):
     """Perception feeds the planner: the poses come from the network (a barely trained one here, so the plan
     may fail; what is checked is that every stage runs and reports, and nothing is half-written)."""

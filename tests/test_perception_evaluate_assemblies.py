@@ -7,23 +7,16 @@ import sys
 import numpy as np
 import pytest
 
-from perception.dataset.build import BuildConfig, build
 from perception.evaluate import main as evaluate_main
 from perception.evaluate_assemblies import assembly_folders, evaluate_assemblies
 from perception.synth import generate
-from perception.train.checkpoint import MODEL
-from perception.train.cli import main as train_main
 from perception.weights import load_for_inference
 from planning.assembly import write_assembly
 
 
 @pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
-    root = tmp_path_factory.mktemp("assemblies_model")
-    build(BuildConfig(category="chair", level="3", count=4, views=1, seed=3), root / "data", progress=False)
-    assert train_main(["--config", "tiny", "--data", str(root / "data"), "--out", str(root / "run"),
-                       "--max-steps", "2", "--no-progress"]) == 0
-    return root / "run" / MODEL
+def checkpoint(tiny_checkpoint):
+    return tiny_checkpoint
 
 
 @pytest.fixture(scope="module")

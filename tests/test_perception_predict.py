@@ -6,24 +6,17 @@ import torch
 
 from cell.render import render_assembly
 from perception import weights
-from perception.dataset.build import BuildConfig, build
 from perception.evaluate_assemblies import truth_targets
 from perception.placement import place_parts
 from perception.predict import MissingPredictionWeights, PredictionError, predict, prepare_parts
 from perception.synth import generate
-from perception.train.checkpoint import MODEL
-from perception.train.cli import main as train_main
 from perception.upright import angle_deg
 from planning.pose import Pose, quat_angle_rad
 
 
 @pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
-    root = tmp_path_factory.mktemp("predict")
-    build(BuildConfig(category="table", level="3", count=4, views=1, seed=3), root / "data", progress=False)
-    assert train_main(["--config", "tiny", "--data", str(root / "data"), "--out", str(root / "run"),
-                       "--max-steps", "2", "--no-progress"]) == 0
-    return root / "run" / MODEL
+def checkpoint(tiny_checkpoint):
+    return tiny_checkpoint
 
 
 @pytest.fixture(scope="module")
