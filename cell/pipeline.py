@@ -156,12 +156,13 @@ class Pipeline:
     def _check_limits(self) -> None:
         from cell.program import CSV_RATE_HZ, LimitViolation, check_limits
 
-        self.samples = self.plan.program.sample(CSV_RATE_HZ)
+        samples = self.plan.program.sample(CSV_RATE_HZ)
         lower, upper = self.plan.joint_limits
         try:
-            check_limits(self.samples, lower, upper)
+            check_limits(samples, lower, upper)
         except LimitViolation as exc:
             raise StageFailed(EXIT_PLANNING, "timing", f"the timed program breaks a limit: {exc}") from exc
+        self.samples = samples  # only a program within the limits is exported
 
     def _simulate(self) -> int:
         from cell.simulate import SimPart, SimSettings, StaticBody, simulate_program

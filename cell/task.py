@@ -50,6 +50,7 @@ HELD_MARGIN_M = 0.002  # the held part is checked pulled in by this much, so it 
 SQUEEZE_M = 0.004  # the closing command asks for this much less than the part's width (force closure)
 DENSE_CHECK_RAD = 0.004  # joint step of the re-check of planned paths
 IK_ATTEMPTS = 6  # IK solutions tried (each with restarts) for a collision-free contact configuration
+JOINT_LIMIT_MARGIN_RAD = 0.01  # configurations keep this from the joint limits (timed motions must not touch them)
 CARRY_CLEARANCE_M = 0.002  # the carried part is grown by this much on its way to the target ...
 TRANSIT_CLEARANCE_M = 0.003  # ... and free-space moves keep this from every obstacle
 SLIDE_CLEARANCE_M = 0.004  # a part inserted along a neighbour's face starts this far off it
@@ -171,6 +172,9 @@ class CellWorld:
             except IKError as exc:
                 last_error = str(exc)
                 continue
+            if not self.panda.within_limits(q, JOINT_LIMIT_MARGIN_RAD):
+                last_error = "the solution lies on a joint limit"
+                continue
             if valid(q):
                 return q
             collided = collided or self._collision_words(q)
@@ -231,9 +235,12 @@ class CellWorld:
         """An OMPL path, re-checked every :data:`DENSE_CHECK_RAD` (OMPL checks its edges at its resolution and
         can step over a thin overlap); a path that fails is planned again with a finer resolution."""
         settings = self.motion
+        # the search keeps off the joint limits (its own ends may lie closer, where inverse kinematics put them)
+        lower = np.minimum(self.panda.lower_limits + JOINT_LIMIT_MARGIN_RAD, np.minimum(start_q, goal_q))
+        upper = np.maximum(self.panda.upper_limits - JOINT_LIMIT_MARGIN_RAD, np.maximum(start_q, goal_q))
         for _ in range(3):
             try:
-                path = plan_joint_path(valid, start_q, goal_q, self.panda.lower_limits, self.panda.upper_limits,
+                path = plan_joint_path(valid, start_q, goal_q, lower, upper,
                                        settings, segment_valid=getattr(valid, "segment", None))
             except MotionPlanningError as exc:
                 raise TaskPlanningError(exc.kind, part, stage, str(exc)) from exc
