@@ -41,7 +41,7 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__)
 
 from cell.render import render_assembly  # noqa: E402
 from perception.evaluate import METHOD_NAMES  # noqa: E402
-from perception.evaluate_assemblies import assembly_folders, evaluate_assemblies, renderable, truth_targets  # noqa: E402
+from perception.evaluate_assemblies import assembly_folders, evaluate_assemblies, truth_targets  # noqa: E402
 from perception.placement import place_parts  # noqa: E402
 from perception.predict import prepare_parts  # noqa: E402
 from perception.synth import generate  # noqa: E402
@@ -124,11 +124,11 @@ import json, resource, time
 import numpy as np
 t0 = time.perf_counter()
 from cell.render import render_assembly
-from perception.evaluate_assemblies import renderable
+
 from perception.predict import predict
 from planning.assembly import read_assembly
 assembly = read_assembly({str(assembly_folder)!r})
-image = render_assembly(renderable(assembly), np.random.default_rng(0)).rgb
+image = render_assembly(assembly, np.random.default_rng(0)).rgb
 meshes = {{p.name: p.mesh for p in assembly.parts}}
 t1 = time.perf_counter(); predict(image, meshes, {str(checkpoint)!r}); t2 = time.perf_counter()
 warm = []
@@ -153,7 +153,7 @@ def way_back_and_up_noise(groups: dict[str, list[Path]], sigmas=(0.0, 2.0, 5.0, 
         for index, path in enumerate(folders):
             assembly = read_assembly(path)
             parts = prepare_parts([p.mesh for p in assembly.parts])
-            view = render_assembly(renderable(assembly), np.random.default_rng([RENDER_SEED, index]))
+            view = render_assembly(assembly, np.random.default_rng([RENDER_SEED, index]))
             bounds = assembly.bounds()
             quat, trans = truth_targets(view, parts, view.camera_from_assembly.apply(bounds.mean(axis=0)))
             up_true = view.camera_from_assembly.rotation[:, 2]

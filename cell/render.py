@@ -18,6 +18,7 @@ import os
 from dataclasses import dataclass
 
 import numpy as np
+import trimesh
 
 from cell.bullet import BulletClient
 from planning.assembly import Assembly
@@ -148,6 +149,41 @@ def _nvidia_present() -> bool:
     return os.path.exists("/dev/nvidia0")
 
 
+# PyBullet refuses a visual mesh of more than 2^17 vertices, and the renderer gives every face its own three
+MAX_RENDER_FACES = 40_000
+
+
+def simplified_for_rendering(mesh: trimesh.Trimesh, max_faces: int = MAX_RENDER_FACES) -> trimesh.Trimesh:
+    """``mesh`` itself when it has at most ``max_faces`` faces, else a copy decimated by vertex clustering on a
+    grid made coarser until it fits (same frame and unit; for pictures only, never for geometry)."""
+    if len(mesh.faces) <= max_faces:
+        return mesh
+    cell = float(np.linalg.norm(mesh.extents)) / 2000.0
+    while True:
+        keys = np.floor(mesh.vertices / cell).astype(np.int64)
+        _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+        faces = inverse.reshape(-1)[mesh.faces]
+        faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
+        simplified = trimesh.Trimesh(mesh.vertices[first], faces, process=True)
+        if len(simplified.faces) <= max_faces:
+            return simplified
+        cell *= 1.5
+
+
+def visual_shape(pb, client_id: int, mesh: trimesh.Trimesh, rgba=None) -> int:
+    """A flat-shaded PyBullet visual shape of ``mesh`` (its own frame), decimated for the picture when it has more
+    faces than PyBullet takes (:func:`simplified_for_rendering`); raises RuntimeError when PyBullet refuses it."""
+    mesh = simplified_for_rendering(mesh).copy()
+    mesh.unmerge_vertices()  # one vertex per face corner: flat shading with face normals
+    options = {} if rgba is None else {"rgbaColor": list(rgba)}
+    shape = pb.createVisualShape(pb.GEOM_MESH, vertices=mesh.vertices.tolist(), indices=mesh.faces.ravel().tolist(),
+                                 normals=np.repeat(mesh.face_normals, 3, axis=0).tolist(), physicsClientId=client_id,
+                                 **options)
+    if shape < 0:
+        raise RuntimeError(f"PyBullet refused a visual mesh of {len(mesh.faces)} faces")
+    return shape
+
+
 class AssemblyRenderer:
     """Holds one headless PyBullet client with an assembly's parts loaded as visual bodies.
 
@@ -168,18 +204,10 @@ class AssemblyRenderer:
             self._load_egl(pb, cid, required=renderer == "egl")
         self._body_ids: list[int] = []
         for part in assembly.parts:
-            mesh = part.mesh.copy()
-            mesh.unmerge_vertices()  # one vertex per face corner: flat shading with face normals
-            normals = np.repeat(mesh.face_normals, 3, axis=0)
-            shape = pb.createVisualShape(
-                pb.GEOM_MESH,
-                vertices=mesh.vertices.tolist(),
-                indices=mesh.faces.ravel().tolist(),
-                normals=normals.tolist(),
-                physicsClientId=cid,
-            )
-            if shape < 0:
-                raise RuntimeError(f"PyBullet refused the mesh of part {part.name!r}")
+            try:
+                shape = visual_shape(pb, cid, part.mesh)
+            except RuntimeError as exc:
+                raise RuntimeError(f"part {part.name!r}: {exc}") from exc
             position, quat_xyzw = part.assembly_from_part.to_pybullet()
             body = pb.createMultiBody(
                 baseVisualShapeIndex=shape,

@@ -65,6 +65,7 @@ from scipy.spatial import HalfspaceIntersection
 
 from cell.bullet import BulletClient
 from cell.program import GripperStep, MotionStep, Program
+from cell.render import visual_shape
 from cell.robot import VELOCITY_LIMITS, Panda
 from cell.scene import CameraConfig
 from cell.symmetry import part_symmetry, position_error_m, rotation_error_deg
@@ -379,14 +380,9 @@ class _Cell:
         if not path.exists():
             _write_pieces_obj([inset(piece, inset_m) for piece in convex_pieces(mesh)], path)
         collision = pb.createCollisionShape(pb.GEOM_MESH, fileName=str(path), physicsClientId=cid)
-        visual_mesh = mesh.copy()
-        visual_mesh.unmerge_vertices()  # flat shading: one normal per face
-        visual = pb.createVisualShape(pb.GEOM_MESH, vertices=visual_mesh.vertices.tolist(),
-                                      indices=visual_mesh.faces.ravel().tolist(),
-                                      normals=np.repeat(visual_mesh.face_normals, 3, axis=0).tolist(),
-                                      rgbaColor=rgba, physicsClientId=cid)
-        if collision < 0 or visual < 0:
-            raise RuntimeError(f"PyBullet refused a mesh of {len(mesh.faces)} faces")
+        visual = visual_shape(pb, cid, mesh, rgba)
+        if collision < 0:
+            raise RuntimeError(f"PyBullet refused the collision pieces of a mesh of {len(mesh.faces)} faces")
         position, orientation = world_from_body.to_pybullet()
         inertial = {}
         if props is not None:

@@ -26,7 +26,6 @@ from pathlib import Path
 
 import networkx as nx
 import numpy as np
-import trimesh
 from torch import nn
 from tqdm import tqdm
 
@@ -36,7 +35,7 @@ from perception.normalize import camera_from_canonical_norm
 from perception.placement import Placement, place_parts
 from perception.predict import PreparedParts, prepare_parts, run_network
 from perception.upright import angle_deg
-from planning.assembly import ASSEMBLY_FILE, Assembly, AssemblyPart, read_assembly
+from planning.assembly import ASSEMBLY_FILE, Assembly, read_assembly
 from planning.collision import ConvexPart
 from planning.contact import FLOOR, contact_graph
 from planning.pose import Pose
@@ -55,34 +54,6 @@ def assembly_folders(root: str | Path) -> list[Path]:
     if not folders:
         raise FileNotFoundError(f"no assembly folders (subfolders with {ASSEMBLY_FILE}) in {root}")
     return folders
-
-
-# PyBullet refuses a visual mesh of more than 2^17 vertices, and the renderer gives every face its own three
-MAX_RENDER_FACES = 40_000
-
-
-def simplified_for_rendering(mesh: trimesh.Trimesh, max_faces: int = MAX_RENDER_FACES) -> trimesh.Trimesh:
-    """``mesh`` itself when it has at most ``max_faces`` faces, else a copy decimated by vertex clustering on a
-    grid made coarser until it fits (same frame and unit; for pictures only, never for geometry)."""
-    if len(mesh.faces) <= max_faces:
-        return mesh
-    cell = float(np.linalg.norm(mesh.extents)) / 2000.0
-    while True:
-        keys = np.floor(mesh.vertices / cell).astype(np.int64)
-        _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-        faces = inverse.reshape(-1)[mesh.faces]
-        faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
-        simplified = trimesh.Trimesh(mesh.vertices[first], faces, process=True)
-        if len(simplified.faces) <= max_faces:
-            return simplified
-        cell *= 1.5
-
-
-def renderable(assembly: Assembly) -> Assembly:
-    """The assembly with every part mesh the renderer can take (:func:`simplified_for_rendering`)."""
-    parts = [AssemblyPart(p.name, simplified_for_rendering(p.mesh), p.assembly_from_part, p.mesh_file)
-             for p in assembly.parts]
-    return Assembly(assembly.name, parts, assembly.metadata)
 
 
 def truth_targets(view: Rendering, parts: PreparedParts, centre_camera_m: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -217,7 +188,7 @@ def evaluate_assemblies(model: nn.Module, root: str | Path, views: int = 1, seed
         prepare_s = (time.perf_counter() - start, time.process_time() - start_cpu)
         convex = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts] if repair else None
         rng = np.random.default_rng([seed, index])
-        with AssemblyRenderer(renderable(assembly)) as renderer:
+        with AssemblyRenderer(assembly) as renderer:
             for k in range(views):
                 view = renderer.render(sample_camera(rng, assembly.bounds()), Appearance.sample(rng, len(meshes)))
                 accumulator.outcomes.append(evaluate_view(model, view, assembly, parts, convex, prepare_s, max_parts,

@@ -41,8 +41,9 @@ FINE_STEP_DEG = 0.05
 @dataclass(frozen=True)
 class UpSettings:
     elevation_range_deg: tuple[float, float] = ELEVATION_RANGE_DEG  # camera prior: no roll, these elevations
-    # Chosen on rotations perturbed by 0-20 degrees per part (benchmarks/perception_accuracy.py, "way back"): a broad kernel
-    # averages the parts' errors, and a stable face only refines an estimate already within a few degrees.
+    # Chosen on rotations perturbed by 0-20 degrees per part (benchmarks/perception_accuracy.py, "way back"): a
+    # broad kernel averages the parts' errors, and a stable face only refines an estimate already within a few
+    # degrees.
     kernel_deg: float = 20.0  # width of the surface-alignment kernel
     snap_deg: float = 3.0  # a stable face within this of the surfaces estimate replaces it (0: surfaces only)
     use_stable_poses: bool = True
