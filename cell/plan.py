@@ -22,7 +22,7 @@ from cell.task import APPROACH_M, INSERTION_M, LIFT_M, CellWorld, PartTask, Task
 from planning.assembly import Assembly
 from planning.collision import ConvexPart
 from planning.disassembly import SequenceResult
-from planning.fixture import PAD_HEIGHT_M, fixture_pads
+from planning.fixture import fixture_pads
 from planning.grasp import Grasp, feasible_grasps
 from planning.gripper import clearance_gripper
 from planning.kitting import HAND_CLEARANCE_M, KittingArea, KittingError, KittingSlot, Reach, plan_kitting
@@ -341,4 +341,4 @@ def _distance(pose_a: Pose, mesh_a: trimesh.Trimesh, pose_b: Pose, mesh_b: trime
     return float(np.linalg.norm(gaps))
 
 
-__all__ = ["CellPlan", "PlanningFailed", "StaticObstacle", "out_of_reach", "plan_cell", "PAD_HEIGHT_M"]
+__all__ = ["CellPlan", "PlanningFailed", "StaticObstacle", "out_of_reach", "plan_cell"]

@@ -30,7 +30,6 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import trimesh
 
 from cell.program import GripperStep, MotionStep, Program
 from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS, IKError, IKSettings, Panda
@@ -85,12 +84,11 @@ class PartTask:
 
 @dataclass
 class PlannedTask:
-    """The result for one part: its motions' joint waypoints and labels (for the report)."""
+    """The arm configurations (rad) at one part's grasp and at its release."""
 
     part: str
     grasp_q: np.ndarray
     place_q: np.ndarray
-    seconds: float = 0.0
 
 
 @dataclass
@@ -388,7 +386,3 @@ def _park_configuration(home_q: np.ndarray, valid) -> np.ndarray:
         if valid(q):
             return q
     return home_q
-
-
-def box_part(name: str, size_m: tuple[float, float, float]) -> ConvexPart:
-    return ConvexPart.from_mesh(name, trimesh.creation.box(size_m))
