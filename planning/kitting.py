@@ -19,13 +19,16 @@ For each part the planner takes the most probable stable pose and the first plac
 - some grasp works at the pick, clear of its support, the table and the neighbouring pedestals and the parts
   still there when it is picked (those assembled after it), and the same grasp works at the target
   (``grasp_ok_at_target``) and the robot reaches it (``reach``);
-- the grasps chosen for the parts picked before it stay clear of it (and of its pedestal).
+- each part picked before it keeps at least one of its grasp options (up to :data:`GRASP_OPTIONS` grasps that
+  work at its pick and target, with arm configurations) clear of the new part and its pedestal; the options the
+  new part spoils are dropped, and every part ends with its best remaining option.
 
 Frames: every pose is in the world frame of the cell (metres, +z up, table top at ``table_z_m``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -38,17 +41,20 @@ from planning.grasp import Grasp, feasible_grasps
 from planning.gripper import clearance_gripper
 from planning.pose import Pose
 
-HAND_CLEARANCE_M = 0.002  # grasps in the kit keep this from pedestals and neighbours (real hands are larger)
-HAND = clearance_gripper(HAND_CLEARANCE_M)
+HAND_CLEARANCE_M = 0.002  # grasps keep this from the parts around the target (real hands are larger) ...
+PICK_CLEARANCE_M = 0.004  # ... and this from pedestals and neighbours in the kit, where fingers closing on a
+# round part slide down it towards the pedestal (2 mm was measured too little in simulation)
+HAND = clearance_gripper(PICK_CLEARANCE_M)
 NEIGHBOUR_REACH_M = 0.25  # parts whose footprints are farther apart than this cannot touch each other's hand
 MAX_PLACES_PER_POSE = 40  # places tried (with grasp checks) for one stable pose before the next pose
 RADIAL_STEP_M = 0.03
+PLACE_SPACING_M = 0.08  # after a place fails, places nearer to it than this are skipped (spread the tries)
 BOARD_THICKNESS_RATIO = 0.25  # a part thinner than this fraction of its middle extent is a board: it may stack
 STACK_OVERHANG_M = 0.04  # a stacked board overhangs the one under it by this much on one side (for the fingers)
 STACK_SUPPORT_M = 0.02  # ... and keeps its centre at least this far inside the lower board's edge
 TOP_FACE_FRACTION = 0.8  # a board's flat top covers at least this fraction of its footprint
 SUPPORT_MARGIN_M = 0.002  # the centre of mass lies at least this far inside the points a part rests on
-CONTACT_HEIGHT_M = 0.001  # vertices this close to the support touch it
+CONTACT_HEIGHT_M = 1e-4  # vertices this close to the support touch it (a round part's facets rise faster)
 NARROW_PART_M = 0.05  # a footprint narrower than this is grasped from beside: its pedestal is as wide as it ...
 NARROW_INSET_M = 0.005  # ... less this on each side ...
 NARROW_MIN_WIDTH_M = 0.008  # ... but at least this wide (or as wide as the part), to stand on
@@ -57,15 +63,36 @@ CAPACITY_FRACTION = 0.75  # rectangles in a ring pack no denser than this: fail 
 COMFORTABLE_FRACTION = 0.6  # places beyond this fraction of the ring's depth are tried last ...
 FAR_PENALTY = 3.0  # ... as if each metre beyond it were this many metres farther from the jig
 ANGLE_STEP_DEG = 3.0
+CHOCK_LENGTH_M = 0.02  # a chock's extent along the part ...
+CHOCK_WIDTH_M = 0.01  # ... and across it
+CHOCK_END_INSET_M = 0.002  # chocks stop this short of the part's ends
+CHOCK_HEIGHT_FRACTION = 0.35  # a chock rises this fraction of the part's height above the pedestal's top ...
+CHOCK_MAX_HEIGHT_M = 0.01  # ... at most this much
+CHOCK_CLEARANCE_M = 0.0005  # between a chock and the part's side
+ELONGATED_RATIO = 2.0  # only a footprint at least this many times longer than wide is cradled
+MAX_REST_POSES = 24  # stable poses considered per part (a round leg has one per facet, each turned about its axis)
+MAX_GROUND_POSES = 7  # ... of which this many (the best for picking from above) are tried on the ground
+SCORED_GRASPS = 20  # the grasps (best at the target first) that rank the rest poses
+FROM_ABOVE = np.cos(np.radians(30.0))  # a pick from above: the approach within 30 degrees of straight down
+LEVEL_FINGERS = np.sin(np.radians(10.0))  # at the pick, grasps closing within 10 degrees of level come first
+GRASP_OPTIONS = 4  # grasps (with arm configurations) kept per part, so a later neighbour may spoil some of them
 
 
 @dataclass(frozen=True)
 class Pedestal:
+    """A box standing on the table under a part (``size_m``, its centre at ``world_from_pedestal``), and for a
+    part that would roll (a round leg), chocks: posts beside both ends of the part, from the table to a little
+    above the pedestal's top, that cradle it (``chocks``: (size, pedestal_from_chock) per post, box centres)."""
+
     size_m: tuple[float, float, float]
     world_from_pedestal: Pose  # box centre
+    chocks: tuple[tuple[tuple[float, float, float], Pose], ...] = ()
 
     def mesh(self) -> trimesh.Trimesh:
-        return trimesh.creation.box(self.size_m)
+        """The pedestal and its chocks (separate boxes; pedestal frame, metres)."""
+        boxes = [trimesh.creation.box(self.size_m)]
+        boxes += [trimesh.creation.box(size, transform=pose.matrix()) for size, pose in self.chocks]
+        return trimesh.util.concatenate(boxes) if len(boxes) > 1 else boxes[0]
 
 
 @dataclass(frozen=True)
@@ -159,6 +186,59 @@ def pedestal_for(half_extent_xy: np.ndarray, world_from_rest: Pose, height_m: fl
     return Pedestal((float(size[0]), float(size[1]), height_m), world_from_rest @ rest_from_pedestal)
 
 
+def chocks_for(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: float,
+               support_rest_xy: np.ndarray) -> tuple | None:
+    """Chocks (see :class:`Pedestal`; pedestal frame, the pedestal ``height_m`` tall and centred under the rest
+    frame's origin) that cradle an elongated part lying in its rest pose, or None when they would not make it
+    rest: the part's contact line on the support (``support_rest_xy``, rest frame x-y) must hold its centre of
+    mass along the part, and the chocks hold it across."""
+    rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
+    span = rested.max(axis=0) - rested.min(axis=0)
+    along = 0 if span[0] >= span[1] else 1
+    across = 1 - along
+    if span[along] < ELONGATED_RATIO * span[across]:
+        return None
+    com = mesh.center_mass if mesh.is_watertight and mesh.volume > 0 else mesh.centroid
+    com_rest = rest_from_part[:3, :3] @ com + rest_from_part[:3, 3]
+    touching = _touching(mesh, rest_from_part, support_rest_xy)
+    if len(touching) < 2 or not (touching[:, along].min() + SUPPORT_MARGIN_M < com_rest[along]
+                                 < touching[:, along].max() - SUPPORT_MARGIN_M):
+        return None
+    rise = min(CHOCK_HEIGHT_FRACTION * span[2], CHOCK_MAX_HEIGHT_M)
+    chocks = []
+    for end in (rested[:, along].min() + CHOCK_END_INSET_M, rested[:, along].max() - CHOCK_END_INSET_M):
+        inner = end + CHOCK_LENGTH_M if end < com_rest[along] else end - CHOCK_LENGTH_M
+        lo, hi = min(end, inner), max(end, inner)
+        beside = _section_below(mesh, rest_from_part, along, 0.5 * (lo + hi), rise)
+        if len(beside) == 0:
+            return None
+        for side in (-1.0, 1.0):
+            face = (beside[:, across].max() if side > 0 else -beside[:, across].min()) + CHOCK_CLEARANCE_M
+            centre = np.zeros(3)
+            centre[along] = 0.5 * (lo + hi)
+            centre[across] = side * (face + 0.5 * CHOCK_WIDTH_M)
+            centre[2] = 0.5 * rise  # pedestal frame: the post spans the pedestal's height plus the rise
+            size = np.zeros(3)
+            size[along], size[across], size[2] = hi - lo, CHOCK_WIDTH_M, height_m + rise
+            chocks.append((tuple(float(v) for v in size), Pose(centre, [1.0, 0.0, 0.0, 0.0])))
+    return tuple(chocks)
+
+
+def _section_below(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, axis: int, at: float,
+                   below_z: float) -> np.ndarray:
+    """Points (rest frame) of the part's cross-section by the plane ``rest[axis] = at`` lying below ``below_z``."""
+    rested = trimesh.Trimesh(mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3], mesh.faces,
+                             process=False)
+    normal = np.zeros(3)
+    normal[axis] = 1.0
+    segments = trimesh.intersections.mesh_plane(rested, normal, normal * at)
+    if len(segments) == 0:
+        return np.zeros((0, 3))
+    t = np.linspace(0.0, 1.0, 11)[None, :, None]
+    points = (segments[:, :1] * (1 - t) + segments[:, 1:] * t).reshape(-1, 3)
+    return points[points[:, 2] <= below_z]
+
+
 def _inside_convex(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
     """Which 2-D ``points`` lie inside the convex ``polygon`` (corners in order, either direction)."""
     edges = np.roll(polygon, -1, axis=0) - polygon
@@ -188,6 +268,20 @@ def _clip(polygon: np.ndarray, convex: np.ndarray) -> np.ndarray:
     return out
 
 
+def _touching(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, support_rest_xy: np.ndarray) -> np.ndarray:
+    """(K, 2) rest-frame x-y points where the resting part touches the support: its lowest vertices over the
+    support's outline, and its lowest faces clipped to that outline."""
+    rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
+    low = rested[:, 2] < CONTACT_HEIGHT_M
+    support = np.asarray(support_rest_xy, dtype=np.float64)
+    pieces = [rested[low, :2][_inside_convex(rested[low, :2], support)]]
+    for face in mesh.faces[np.all(low[mesh.faces], axis=1)]:
+        clipped = _clip(rested[face, :2], support)
+        if len(clipped):
+            pieces.append(clipped)
+    return np.concatenate(pieces)
+
+
 def rests_stably(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, support_rest_xy: np.ndarray,
                  margin_m: float = SUPPORT_MARGIN_M) -> bool:
     """Whether the part, lying in its rest pose (rest frame: lowest point at z = 0), stands on a support whose top
@@ -195,17 +289,7 @@ def rests_stably(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, support_rest
     support surround its centre of mass with ``margin_m`` to spare, more for a high centre of mass (it must
     survive a tilt of :data:`TIP_ANGLE_DEG`). (A stable pose of the part's hull is not
     enough on a pedestal inset from the footprint, nor for parts whose underside is not flat.)"""
-    rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
-    low = rested[:, 2] < CONTACT_HEIGHT_M
-    support = np.asarray(support_rest_xy, dtype=np.float64)
-    # where the part touches the support: its lowest vertices over the support, and its lowest faces clipped
-    # to the support's outline
-    pieces = [rested[low, :2][_inside_convex(rested[low, :2], support)]]
-    for face in mesh.faces[np.all(low[mesh.faces], axis=1)]:
-        clipped = _clip(rested[face, :2], support)
-        if len(clipped):
-            pieces.append(clipped)
-    touching = np.concatenate(pieces)
+    touching = _touching(mesh, rest_from_part, support_rest_xy)
     if len(touching) < 3:
         return False
     from scipy.spatial import ConvexHull, QhullError
@@ -339,7 +423,9 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
             raise KittingError(_why_not(name, mesh, candidates[name], grasp_ok_at_target, area,
                                         layout.prefer))
         layout.slots.append(chosen)
-    return sorted(layout.slots, key=lambda slot: names.index(slot.part))
+    slots = [dataclasses.replace(slot, grasp=layout.options[slot.part][0][0], reach=layout.options[slot.part][0][1])
+             for slot in layout.slots]  # each part's best grasp that the parts laid out after it left open
+    return sorted(slots, key=lambda slot: names.index(slot.part))
 
 
 def _is_board(mesh: trimesh.Trimesh) -> bool:
@@ -355,6 +441,7 @@ class _Layout:
         self.order, self.meshes, self.area, self.prefer, self.reach = order, meshes, area, prefer, reach
         self.target_rotations: dict[str, np.ndarray] = {}
         self.slots: list[KittingSlot] = []
+        self.options: dict[str, list[tuple[Grasp, object]]] = {}  # per slot: (grasp, reach) still possible
         self.usable_at_target: dict[tuple, bool] = {}
         self.places_cache: dict[tuple, list] = {}
 
@@ -379,22 +466,31 @@ class _Layout:
 
     def place(self, name: str, grasps: list[Grasp], grasp_ok_at_target) -> KittingSlot | None:
         mesh = self.meshes[name]
-        poses = stable_rest_poses(mesh)
+        poses = stable_rest_poses(mesh, max_poses=MAX_REST_POSES)
         if name in self.target_rotations:  # lying as it sits in the assembly, its target grasps work from above
             poses = [(upright_rest_pose(mesh, self.target_rotations[name]), float("nan"))] + poses
+        # on the ground, the poses where more of the grasps wanted at the target pick from above come first
+        ground = sorted(poses, key=lambda pose: -_picks_from_above(grasps[:SCORED_GRASPS], pose[0]))
         stack_first = _is_board(mesh)
         for attempt in ("stack", "ground") if stack_first else ("ground", "stack"):
-            for rest_from_part, probability in poses[:1] if attempt == "stack" else poses:
+            for rest_from_part, probability in poses[:1] if attempt == "stack" else ground[:MAX_GROUND_POSES]:
                 places = (self._stack_places(name, rest_from_part) if attempt == "stack"
                           else self._ground_places(name, rest_from_part))
-                tried = 0
+                tried, failed_xy = 0, []
                 for world_from_rest, corners, pedestal, base in places:
+                    xy = world_from_rest.position[:2]
+                    if any(np.linalg.norm(xy - f) < PLACE_SPACING_M for f in failed_xy):
+                        continue  # next to a place that failed: most likely fails for the same reason
                     tried += 1
                     if tried > MAX_PLACES_PER_POSE:
                         break
-                    slot = self._try(name, mesh, grasps, grasp_ok_at_target, world_from_rest @ Pose.from_matrix(
+                    failed_xy.append(xy)
+                    found = self._try(name, mesh, grasps, grasp_ok_at_target, world_from_rest @ Pose.from_matrix(
                         rest_from_part), corners, pedestal, base, probability)
-                    if slot is not None:
+                    if found is not None:
+                        slot, mine, surviving = found
+                        self.options.update(surviving)
+                        self.options[name] = mine
                         return slot
         return None
 
@@ -413,7 +509,11 @@ class _Layout:
                                    [1, 0, 0, 0]) @ _yaw(yaw)
             pedestal = pedestal_for(mesh_half, world_from_rest, self.area.pedestal_height_m)
             if not self._supported(name, rest_from_part, pedestal):
-                return  # the same in every place: try the next rest pose
+                chocks = chocks_for(self.meshes[name], rest_from_part, self.area.pedestal_height_m,
+                                    self._top(pedestal))
+                if chocks is None:
+                    return  # the same in every place: try the next rest pose
+                pedestal = dataclasses.replace(pedestal, chocks=chocks)
             yield world_from_rest, _corners(xy, long_yaw, half_ring), pedestal, None
 
     def _stack_places(self, name: str, rest_from_part: np.ndarray):
@@ -453,9 +553,12 @@ class _Layout:
                 yield world_from_rest, corners, None, base
 
     def _supported(self, name: str, rest_from_part: np.ndarray, pedestal: Pedestal) -> bool:
-        half = 0.5 * np.array(pedestal.size_m[:2])
-        top = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * half  # the pedestal is centred in the rest frame
-        return rests_stably(self.meshes[name], rest_from_part, top)
+        return rests_stably(self.meshes[name], rest_from_part, self._top(pedestal))
+
+    @staticmethod
+    def _top(pedestal: Pedestal) -> np.ndarray:
+        """The pedestal's top outline in the rest frame (the pedestal is centred under it)."""
+        return np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * 0.5 * np.array(pedestal.size_m[:2])
 
     def _stack_of(self, slot: KittingSlot) -> set[str]:
         members = {slot.part}
@@ -466,43 +569,57 @@ class _Layout:
         return members
 
     def _try(self, name, mesh, grasps, grasp_ok_at_target, world_from_part, corners, pedestal, base,
-             probability) -> KittingSlot | None:
+             probability) -> tuple[KittingSlot, list, dict] | None:
+        """The slot for ``name`` here, its grasp options and the earlier slots' options that survive it; None
+        when no grasp works here or some earlier slot would keep no option."""
         own = [] if pedestal is None else [(pedestal.mesh(), pedestal.world_from_pedestal)]
         obstacles = own + self.obstacles_at_pick(name, corners)
         at_pick = {_grasp_key(g) for g in feasible_grasps(grasps, world_from_part, obstacles, None,
                                                           floor_z=self.area.table_z_m, gripper=HAND)}
-        chosen, reached = None, None
-        for grasp in (g for g in grasps if _grasp_key(g) in at_pick):  # caller's order (best at target first)
-            key = (name, _grasp_key(grasp))
-            if key not in self.usable_at_target:
-                self.usable_at_target[key] = bool(grasp_ok_at_target(name, grasp))
-            if not self.usable_at_target[key]:
-                continue
-            # the support (own pedestal, or the board under it) is left out: the grasp check covered the hand
-            present = [o for slot in self.slots if base is None or slot.part != base.part
-                       for o in self._bodies(slot, name)]
-            reached = self.reach.at_pick(name, grasp, world_from_part, present)
-            if reached is not None:
-                chosen = grasp
-                break
-        if chosen is None:
+        # the support (own pedestal, or the board under it) is left out: the grasp check covered the hand
+        present = [o for slot in self.slots if base is None or slot.part != base.part
+                   for o in self._bodies(slot, name)]
+
+        def level(grasp: Grasp) -> bool:  # the fingers close across gravity: neither tip drops onto the support
+            return abs(float((world_from_part.rotation @ grasp.part_from_tcp.rotation[:, 1])[2])) <= LEVEL_FINGERS
+
+        def options():  # (grasp, arm configurations): level fingers first, else in the caller's order (best at
+            # the target first)
+            usable = [g for g in grasps if _grasp_key(g) in at_pick]
+            for grasp in sorted(usable, key=lambda g: not level(g)):
+                key = (name, _grasp_key(grasp))
+                if key not in self.usable_at_target:
+                    self.usable_at_target[key] = bool(grasp_ok_at_target(name, grasp))
+                if self.usable_at_target[key]:
+                    reached = self.reach.at_pick(name, grasp, world_from_part, present)
+                    if reached is not None:
+                        yield grasp, reached
+
+        own_options = options()
+        first = next(own_options, None)
+        if first is None:
             return None
-        # the parts picked before this one must still be reachable and graspable with it (and its pedestal)
+        # the parts picked before this one must still be reachable and graspable with it (and its pedestal) by
+        # at least one of their grasp options; the options it spoils are dropped
         new_part = [(mesh, world_from_part)]
-        new_static = own
+        surviving = {}
         for slot in self.slots:
-            earlier = self.rank(slot.part) < self.rank(name)
-            added = (new_part if earlier else []) + new_static
+            added = (new_part if self.rank(slot.part) < self.rank(name) else []) + own
             if not added:
                 continue
             support = [] if slot.pedestal is None else [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal)]
-            if self._near(slot, corners) and not feasible_grasps([slot.grasp], slot.world_from_part, added + support,
-                                                                 None, floor_z=self.area.table_z_m, gripper=HAND):
+            near = self._near(slot, corners)
+            kept = [(grasp, reached) for grasp, reached in self.options[slot.part]
+                    if (not near or feasible_grasps([grasp], slot.world_from_part, added + support, None,
+                                                    floor_z=self.area.table_z_m, gripper=HAND))
+                    and self.reach.still_clear(reached, added)]  # the arm reaches far beyond the hand
+            if not kept:
                 return None
-            if not self.reach.still_clear(slot.reach, added):  # the arm reaches far beyond the hand
-                return None
-        return KittingSlot(name, world_from_part, pedestal, chosen, probability, corners, reached,
+            surviving[slot.part] = kept
+        mine = [first] + [option for option, _ in zip(own_options, range(GRASP_OPTIONS - 1))]
+        slot = KittingSlot(name, world_from_part, pedestal, first[0], probability, corners, first[1],
                            None if base is None else base.part)
+        return slot, mine, surviving
 
     def _bodies(self, slot: KittingSlot, name: str) -> list[tuple[trimesh.Trimesh, Pose]]:
         """A slot's bodies present when ``name`` is picked: its pedestal always, the part if assembled later."""
@@ -543,6 +660,16 @@ def _flat_top(mesh: trimesh.Trimesh, world_from_part: Pose) -> tuple[float, np.n
         return None
     centre = 0.5 * (along.max() + along.min()) * long_axis + 0.5 * (across.max() + across.min()) * short_axis
     return top_z, centre, float(np.arctan2(long_axis[1], long_axis[0])), half
+
+
+def _picks_from_above(grasps: Sequence[Grasp], rest_from_part: np.ndarray) -> int:
+    """How many ``grasps`` approach from above with level fingers when the part lies in this rest pose."""
+    rotation = rest_from_part[:3, :3]
+    count = 0
+    for grasp in grasps:
+        tcp = rotation @ grasp.part_from_tcp.rotation
+        count += bool(tcp[2, 2] <= -FROM_ABOVE and abs(tcp[2, 1]) <= LEVEL_FINGERS)
+    return count
 
 
 def _grasp_key(grasp: Grasp) -> tuple:

@@ -80,3 +80,45 @@ def test_a_ring_too_small_says_so():
     grasps = antipodal_grasps(board, np.random.default_rng(0))
     with pytest.raises(KittingError, match="too large for this cell"):
         plan_kitting(["board"], [board], {"board": grasps}, lambda n, g: True, small)
+
+
+def _plain_pedestal_top(mesh, rest_from_part):
+    from planning.kitting import _rest_half, pedestal_for
+    from planning.pose import Pose
+
+    half, _ = _rest_half(mesh, rest_from_part)
+    pedestal = pedestal_for(half, Pose([0, 0, 0], [1, 0, 0, 0]), 0.12)
+    return pedestal, np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * 0.5 * np.array(pedestal.size_m[:2])
+
+
+def test_a_round_leg_would_roll_off_a_pedestal_and_is_cradled_by_chocks():
+    from planning.kitting import Pedestal, chocks_for, rests_stably
+
+    leg = trimesh.creation.cylinder(radius=0.009, height=0.227, sections=24)
+    rest_from_part, _ = stable_rest_poses(leg)[0]
+    pedestal, top = _plain_pedestal_top(leg, rest_from_part)
+    assert not rests_stably(leg, rest_from_part, top)  # on one 2.4 mm facet it rolls at a 7.5 degree tilt
+    chocks = chocks_for(leg, rest_from_part, 0.12, top)
+    assert chocks is not None and len(chocks) == 4
+    cradle = Pedestal(pedestal.size_m, pedestal.world_from_pedestal, chocks).mesh()
+    assert len(cradle.split(only_watertight=False)) == 5  # the pedestal and four separate posts
+    # the posts stand beside the leg, clear of it by the chock clearance, and hold it across
+    rested = trimesh.Trimesh(leg.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3], leg.faces)
+    rested.apply_translation([0, 0, 0.06])  # the rest frame's origin sits 6 cm above the pedestal's centre
+    gaps = [trimesh.proximity.signed_distance(rested, trimesh.creation.box(size, transform=pose.matrix()).vertices)
+            for size, pose in chocks]
+    for gap in gaps:
+        assert np.all(gap < 0)  # no post corner inside the leg
+        assert -np.max(gap) < 0.003  # the nearest corner of each post is within a few mm of the leg
+    across = np.argmin(np.ptp(rested.vertices[:, :2], axis=0))
+    sides = {np.sign(pose.position[across]) for _, pose in chocks}
+    assert sides == {-1.0, 1.0}
+
+
+def test_a_square_beam_rests_without_chocks():
+    from planning.kitting import rests_stably
+
+    beam = trimesh.creation.box([0.227, 0.018, 0.018])
+    rest_from_part, _ = stable_rest_poses(beam)[0]
+    _, top = _plain_pedestal_top(beam, rest_from_part)
+    assert rests_stably(beam, rest_from_part, top)
