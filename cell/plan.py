@@ -200,6 +200,7 @@ class _KitReach(Reach):
 
 
 JIG_TURNS_DEG = (0.0, 90.0, 270.0, 180.0)
+MOTION_RETRIES = 4  # motion planning restarts with a failing part's next grasp at most this often
 DEFAULT_TIME_BUDGET_S = 180.0  # the jig is turned about +z until the parts can be kitted and placed
 
 
@@ -315,22 +316,38 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
                    for s in slots if s.pedestal is not None]
         convex_static = {o.name: (ConvexPart.from_mesh(o.name, o.mesh), o.world_from_obstacle) for o in static}
         convex_parts = {p.name: ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts}
-        tasks = []
-        for slot in slots:
-            step = steps[slot.part]
-            tasks.append(PartTask(slot.part, slot.world_from_part, targets[slot.part], slot.grasp,
-                                  np.asarray(step.insertion_direction, dtype=np.float64), touches[slot.part],
-                                  slot.rests_on or f"pedestal {slot.part}", slot.reach[0][0], slot.reach[1][0]))
-        world = CellWorld(panda, scene.robot.world_from_base, convex_static, convex_parts,
-                          np.random.default_rng([seed, 2]), motion or MotionSettings())
-        try:
-            task_plan = plan_tasks(world, tasks, home_q, progress=progress, deadline=deadline)
-        except TaskPlanningError as exc:
-            error = PlanningFailed("motion", str(exc), exc.part)
-            error.seconds = {**seconds, "motion": time.perf_counter() - started, "timing": world.timing_seconds}
-            raise error from exc
-        seconds["timing"] = world.timing_seconds
-        seconds["motion"] = time.perf_counter() - started - world.timing_seconds
+        # a part whose motions fail with its grasp is tried with its kitting alternatives (each valid at its
+        # pick and target), at most MOTION_RETRIES times in all
+        options = {s.part: [(s.grasp, s.reach)] + list(s.alternatives) for s in slots}
+        timing_seconds = 0.0
+        for attempt in range(MOTION_RETRIES + 1):
+            tasks = []
+            for slot in slots:
+                step = steps[slot.part]
+                grasp, reach = options[slot.part][0]
+                tasks.append(PartTask(slot.part, slot.world_from_part, targets[slot.part], grasp,
+                                      np.asarray(step.insertion_direction, dtype=np.float64), touches[slot.part],
+                                      slot.rests_on or f"pedestal {slot.part}", reach[0][0], reach[1][0]))
+            world = CellWorld(panda, scene.robot.world_from_base, convex_static, convex_parts,
+                              np.random.default_rng([seed, 2, attempt]), motion or MotionSettings())
+            try:
+                task_plan = plan_tasks(world, tasks, home_q, progress=progress, deadline=deadline)
+                timing_seconds += world.timing_seconds
+                break
+            except TaskPlanningError as exc:
+                timing_seconds += world.timing_seconds
+                failed = options.get(exc.part, [])
+                if (attempt == MOTION_RETRIES or len(failed) < 2 or exc.kind == "timeout"
+                        or time.perf_counter() > deadline):
+                    error = PlanningFailed("motion", str(exc), exc.part)
+                    error.seconds = {**seconds, "motion": time.perf_counter() - started - timing_seconds,
+                                     "timing": timing_seconds}
+                    raise error from exc
+                failed.pop(0)  # the next grasp for this part
+        slots = [dataclasses.replace(s, grasp=options[s.part][0][0], reach=options[s.part][0][1],
+                                     alternatives=tuple(options[s.part][1:])) for s in slots]
+        seconds["timing"] = timing_seconds
+        seconds["motion"] = time.perf_counter() - started - timing_seconds
         limits = (panda.lower_limits.copy(), panda.upper_limits.copy())
     return CellPlan(world_from_assembly, static, slots, tasks, task_plan, limits, seconds)
 

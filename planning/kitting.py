@@ -41,10 +41,11 @@ from planning.grasp import Grasp, feasible_grasps
 from planning.gripper import clearance_gripper
 from planning.pose import Pose
 
-HAND_CLEARANCE_M = 0.002  # grasps keep this from the parts around the target (real hands are larger) ...
-PICK_CLEARANCE_M = 0.004  # ... and this from pedestals and neighbours in the kit, where fingers closing on a
-# round part slide down it towards the pedestal (2 mm was measured too little in simulation)
-HAND = clearance_gripper(PICK_CLEARANCE_M)
+HAND_CLEARANCE_M = 0.002  # grasps keep this from pedestals and neighbours (real hands are larger) ...
+TILTED_CLEARANCE_M = 0.004  # ... and this where the fingers close on a slant, sliding down a round part towards
+# its support (2 mm was measured too little in simulation)
+HAND = clearance_gripper(HAND_CLEARANCE_M)
+TILTED_HAND = clearance_gripper(TILTED_CLEARANCE_M)
 NEIGHBOUR_REACH_M = 0.25  # parts whose footprints are farther apart than this cannot touch each other's hand
 MAX_PLACES_PER_POSE = 40  # places tried (with grasp checks) for one stable pose before the next pose
 RADIAL_STEP_M = 0.03
@@ -107,6 +108,7 @@ class KittingSlot:
     footprint_world: np.ndarray  # (4, 2) corners of the footprint rectangle, world x-y, metres
     reach: object = None  # what ``Reach.at_pick`` returned (e.g. the arm configurations), for ``still_clear``
     rests_on: str | None = None  # the board it lies on (picked after it); None: on its own pedestal
+    alternatives: tuple = ()  # further (grasp, reach) pairs that also work here, best first (for the motion planner)
 
 
 class Reach:
@@ -423,7 +425,8 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
             raise KittingError(_why_not(name, mesh, candidates[name], grasp_ok_at_target, area,
                                         layout.prefer))
         layout.slots.append(chosen)
-    slots = [dataclasses.replace(slot, grasp=layout.options[slot.part][0][0], reach=layout.options[slot.part][0][1])
+    slots = [dataclasses.replace(slot, grasp=layout.options[slot.part][0][0], reach=layout.options[slot.part][0][1],
+                                 alternatives=tuple(layout.options[slot.part][1:]))
              for slot in layout.slots]  # each part's best grasp that the parts laid out after it left open
     return sorted(slots, key=lambda slot: names.index(slot.part))
 
@@ -470,7 +473,8 @@ class _Layout:
         if name in self.target_rotations:  # lying as it sits in the assembly, its target grasps work from above
             poses = [(upright_rest_pose(mesh, self.target_rotations[name]), float("nan"))] + poses
         # on the ground, the poses where more of the grasps wanted at the target pick from above come first
-        ground = sorted(poses, key=lambda pose: -_picks_from_above(grasps[:SCORED_GRASPS], pose[0]))
+        ground = sorted((pose for pose in poses if self._can_rest(name, pose[0])),
+                        key=lambda pose: -_picks_from_above(grasps[:SCORED_GRASPS], pose[0]))
         stack_first = _is_board(mesh)
         for attempt in ("stack", "ground") if stack_first else ("ground", "stack"):
             for rest_from_part, probability in poses[:1] if attempt == "stack" else ground[:MAX_GROUND_POSES]:
@@ -552,6 +556,14 @@ class _Layout:
                     continue
                 yield world_from_rest, corners, None, base
 
+    def _can_rest(self, name: str, rest_from_part: np.ndarray) -> bool:
+        """Whether the part rests in this pose on its pedestal, with chocks if need be (the same anywhere)."""
+        mesh = self.meshes[name]
+        pedestal = pedestal_for(_rest_half(mesh, rest_from_part)[0], Pose([0, 0, 0], [1, 0, 0, 0]),
+                                self.area.pedestal_height_m)
+        return self._supported(name, rest_from_part, pedestal) or chocks_for(
+            mesh, rest_from_part, self.area.pedestal_height_m, self._top(pedestal)) is not None
+
     def _supported(self, name: str, rest_from_part: np.ndarray, pedestal: Pedestal) -> bool:
         return rests_stably(self.meshes[name], rest_from_part, self._top(pedestal))
 
@@ -574,8 +586,12 @@ class _Layout:
         when no grasp works here or some earlier slot would keep no option."""
         own = [] if pedestal is None else [(pedestal.mesh(), pedestal.world_from_pedestal)]
         obstacles = own + self.obstacles_at_pick(name, corners)
-        at_pick = {_grasp_key(g) for g in feasible_grasps(grasps, world_from_part, obstacles, None,
-                                                          floor_z=self.area.table_z_m, gripper=HAND)}
+        feasible = feasible_grasps(grasps, world_from_part, obstacles, None, floor_z=self.area.table_z_m,
+                                   gripper=HAND)
+        slanted = [g for g in feasible if _slanted(world_from_part, g)]
+        spoiled = {_grasp_key(g) for g in slanted} - {_grasp_key(g) for g in feasible_grasps(
+            slanted, world_from_part, obstacles, None, floor_z=self.area.table_z_m, gripper=TILTED_HAND)}
+        at_pick = {_grasp_key(g) for g in feasible} - spoiled
         # the support (own pedestal, or the board under it) is left out: the grasp check covered the hand
         present = [o for slot in self.slots if base is None or slot.part != base.part
                    for o in self._bodies(slot, name)]
@@ -583,10 +599,14 @@ class _Layout:
         def level(grasp: Grasp) -> bool:  # the fingers close across gravity: neither tip drops onto the support
             return abs(float((world_from_part.rotation @ grasp.part_from_tcp.rotation[:, 1])[2])) <= LEVEL_FINGERS
 
-        def options():  # (grasp, arm configurations): level fingers first, else in the caller's order (best at
-            # the target first)
+        def steepness(grasp: Grasp) -> int:  # how far from straight down the hand approaches, in 15-degree steps
+            down = -float((world_from_part.rotation @ grasp.part_from_tcp.rotation[:, 2])[2])
+            return int(np.degrees(np.arccos(np.clip(down, -1.0, 1.0))) // 15.0)
+
+        def options():  # (grasp, arm configurations): level fingers first, then the steepest approach from above
+            # (the fingertips keep level above the support), else in the caller's order (best at the target first)
             usable = [g for g in grasps if _grasp_key(g) in at_pick]
-            for grasp in sorted(usable, key=lambda g: not level(g)):
+            for grasp in sorted(usable, key=lambda g: (not level(g), steepness(g))):
                 key = (name, _grasp_key(grasp))
                 if key not in self.usable_at_target:
                     self.usable_at_target[key] = bool(grasp_ok_at_target(name, grasp))
@@ -660,6 +680,12 @@ def _flat_top(mesh: trimesh.Trimesh, world_from_part: Pose) -> tuple[float, np.n
         return None
     centre = 0.5 * (along.max() + along.min()) * long_axis + 0.5 * (across.max() + across.min()) * short_axis
     return top_z, centre, float(np.arctan2(long_axis[1], long_axis[0])), half
+
+
+def _slanted(world_from_part: Pose, grasp: Grasp) -> bool:
+    """Whether the fingers close neither level nor vertically at this pose of the part."""
+    tilt = abs(float((world_from_part.rotation @ grasp.part_from_tcp.rotation[:, 1])[2]))
+    return LEVEL_FINGERS < tilt < np.cos(np.radians(10.0))
 
 
 def _picks_from_above(grasps: Sequence[Grasp], rest_from_part: np.ndarray) -> int:
