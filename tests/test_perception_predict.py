@@ -122,7 +122,6 @@ def test_a_missing_weights_file_names_the_file_and_the_training_command(scene, t
         predict(view.rgb, meshes_of(assembly))
 
 
-@pytest.mark.skipif(not weights.BUNDLED_WEIGHTS.is_file(), reason="bundled weights not yet in the package")
 def test_bundled_weights_predict_an_upright_object(scene):
     assembly, view = scene
     prediction = predict(view.rgb, meshes_of(assembly))
