@@ -447,6 +447,7 @@ class _Layout:
         self.options: dict[str, list[tuple[Grasp, object]]] = {}  # per slot: (grasp, reach) still possible
         self.usable_at_target: dict[tuple, bool] = {}
         self.places_cache: dict[tuple, list] = {}
+        self.chocks_cache: dict[tuple, tuple | None] = {}
 
     def rank(self, name: str) -> int:
         return self.order.index(name)
@@ -473,7 +474,7 @@ class _Layout:
         if name in self.target_rotations:  # lying as it sits in the assembly, its target grasps work from above
             poses = [(upright_rest_pose(mesh, self.target_rotations[name]), float("nan"))] + poses
         # on the ground, the poses where more of the grasps wanted at the target pick from above come first
-        ground = sorted((pose for pose in poses if self._can_rest(name, pose[0])),
+        ground = sorted((pose for pose in poses if self._chocks(name, pose[0]) is not None),
                         key=lambda pose: -_picks_from_above(grasps[:SCORED_GRASPS], pose[0]))
         stack_first = _is_board(mesh)
         for attempt in ("stack", "ground") if stack_first else ("ground", "stack"):
@@ -499,6 +500,9 @@ class _Layout:
         return None
 
     def _ground_places(self, name: str, rest_from_part: np.ndarray):
+        chocks = self._chocks(name, rest_from_part)
+        if chocks is None:
+            return  # it does not rest in this pose, anywhere: try the next rest pose
         mesh_half, long_is_x = _rest_half(self.meshes[name], rest_from_part)
         half_ring = np.array([max(mesh_half), min(mesh_half)])
         key = tuple(np.round(half_ring, 4))
@@ -511,13 +515,8 @@ class _Layout:
             yaw = long_yaw if long_is_x else long_yaw - np.pi / 2  # the rest frame's long axis along long_yaw
             world_from_rest = Pose([xy[0], xy[1], self.area.table_z_m + self.area.pedestal_height_m],
                                    [1, 0, 0, 0]) @ _yaw(yaw)
-            pedestal = pedestal_for(mesh_half, world_from_rest, self.area.pedestal_height_m)
-            if not self._supported(name, rest_from_part, pedestal):
-                chocks = chocks_for(self.meshes[name], rest_from_part, self.area.pedestal_height_m,
-                                    self._top(pedestal))
-                if chocks is None:
-                    return  # the same in every place: try the next rest pose
-                pedestal = dataclasses.replace(pedestal, chocks=chocks)
+            pedestal = dataclasses.replace(pedestal_for(mesh_half, world_from_rest, self.area.pedestal_height_m),
+                                           chocks=chocks)
             yield world_from_rest, _corners(xy, long_yaw, half_ring), pedestal, None
 
     def _stack_places(self, name: str, rest_from_part: np.ndarray):
@@ -556,13 +555,17 @@ class _Layout:
                     continue
                 yield world_from_rest, corners, None, base
 
-    def _can_rest(self, name: str, rest_from_part: np.ndarray) -> bool:
-        """Whether the part rests in this pose on its pedestal, with chocks if need be (the same anywhere)."""
-        mesh = self.meshes[name]
-        pedestal = pedestal_for(_rest_half(mesh, rest_from_part)[0], Pose([0, 0, 0], [1, 0, 0, 0]),
-                                self.area.pedestal_height_m)
-        return self._supported(name, rest_from_part, pedestal) or chocks_for(
-            mesh, rest_from_part, self.area.pedestal_height_m, self._top(pedestal)) is not None
+    def _chocks(self, name: str, rest_from_part: np.ndarray) -> tuple | None:
+        """How the part rests in this pose on its pedestal, the same anywhere: () on the pedestal alone, the
+        chocks that cradle it, or None when it does not rest (computed once per part and pose)."""
+        key = (name, np.round(rest_from_part, 9).tobytes())
+        if key not in self.chocks_cache:
+            mesh = self.meshes[name]
+            pedestal = pedestal_for(_rest_half(mesh, rest_from_part)[0], Pose([0, 0, 0], [1, 0, 0, 0]),
+                                    self.area.pedestal_height_m)
+            self.chocks_cache[key] = () if self._supported(name, rest_from_part, pedestal) else chocks_for(
+                mesh, rest_from_part, self.area.pedestal_height_m, self._top(pedestal))
+        return self.chocks_cache[key]
 
     def _supported(self, name: str, rest_from_part: np.ndarray, pedestal: Pedestal) -> bool:
         return rests_stably(self.meshes[name], rest_from_part, self._top(pedestal))
