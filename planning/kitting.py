@@ -600,7 +600,7 @@ class _Layout:
                    for o in self._bodies(slot, name)]
 
         def level(grasp: Grasp) -> bool:  # the fingers close across gravity: neither tip drops onto the support
-            return abs(float((world_from_part.rotation @ grasp.part_from_tcp.rotation[:, 1])[2])) <= LEVEL_FINGERS
+            return _finger_tilt(world_from_part.rotation, grasp) <= LEVEL_FINGERS
 
         def steepness(grasp: Grasp) -> int:  # how far from straight down the hand approaches, in 15-degree steps
             down = -float((world_from_part.rotation @ grasp.part_from_tcp.rotation[:, 2])[2])
@@ -685,20 +685,21 @@ def _flat_top(mesh: trimesh.Trimesh, world_from_part: Pose) -> tuple[float, np.n
     return top_z, centre, float(np.arctan2(long_axis[1], long_axis[0])), half
 
 
+def _finger_tilt(world_from_part_rotation: np.ndarray, grasp: Grasp) -> float:
+    """|sin| of the angle between the fingers' closing axis and the horizontal, the part turned as given."""
+    return abs(float((world_from_part_rotation @ grasp.part_from_tcp.rotation[:, 1])[2]))
+
+
 def _slanted(world_from_part: Pose, grasp: Grasp) -> bool:
     """Whether the fingers close neither level nor vertically at this pose of the part."""
-    tilt = abs(float((world_from_part.rotation @ grasp.part_from_tcp.rotation[:, 1])[2]))
-    return LEVEL_FINGERS < tilt < np.cos(np.radians(10.0))
+    return LEVEL_FINGERS < _finger_tilt(world_from_part.rotation, grasp) < np.cos(np.radians(10.0))
 
 
 def _picks_from_above(grasps: Sequence[Grasp], rest_from_part: np.ndarray) -> int:
     """How many ``grasps`` approach from above with level fingers when the part lies in this rest pose."""
     rotation = rest_from_part[:3, :3]
-    count = 0
-    for grasp in grasps:
-        tcp = rotation @ grasp.part_from_tcp.rotation
-        count += bool(tcp[2, 2] <= -FROM_ABOVE and abs(tcp[2, 1]) <= LEVEL_FINGERS)
-    return count
+    return sum(float((rotation @ grasp.part_from_tcp.rotation[:, 2])[2]) <= -FROM_ABOVE
+               and _finger_tilt(rotation, grasp) <= LEVEL_FINGERS for grasp in grasps)
 
 
 def _grasp_key(grasp: Grasp) -> tuple:
