@@ -40,6 +40,7 @@ class Panda:
 
     def __init__(self, client, world_from_base: Pose, urdf: str = "franka_panda/panda.urdf") -> None:
         self.pb, self.cid = client.pb, client.client_id
+        self.world_from_base = world_from_base
         position, orientation = world_from_base.to_pybullet()
         self.body = self.pb.loadURDF(f"{pybullet_data.getDataPath()}/{urdf}", position, orientation,
                                      useFixedBase=True, flags=self.pb.URDF_USE_SELF_COLLISION,
@@ -75,6 +76,13 @@ class Panda:
     def within_limits(self, q: np.ndarray, margin: float = 0.0) -> bool:
         return bool(np.all(q >= self.lower_limits + margin) and np.all(q <= self.upper_limits - margin))
 
+    def _facing(self, q: np.ndarray, world_point: np.ndarray) -> np.ndarray:
+        """``q`` with joint 1 turned so that the arm faces ``world_point`` (within joint 1's limits)."""
+        x, y, _ = self.world_from_base.inverse().apply(np.asarray(world_point, dtype=np.float64)[None])[0]
+        facing = np.array(q, dtype=np.float64)
+        facing[0] = np.clip(np.arctan2(y, x), self.lower_limits[0], self.upper_limits[0])
+        return facing
+
     # --- kinematics -----------------------------------------------------------------------------------------
     def forward_tcp(self, q: np.ndarray) -> Pose:
         """``world_from_tcp`` at arm configuration ``q`` (sets the arm)."""
@@ -87,11 +95,14 @@ class Panda:
                     settings: IKSettings = IKSettings()) -> np.ndarray:
         """Arm configuration placing the TCP at ``world_from_tcp``; raises :class:`IKError`.
 
-        The first start is ``seed_q`` (or the current configuration), the others uniform within the limits.
+        The first start is ``seed_q`` (or the current configuration), the second (with ``restarts`` >= 2) the same turned by joint 1 to
+        face the target (so that the arm reaches out towards it, elbow up, rather than folding over its own base
+        from a random start), the others uniform within the limits.
         """
         position, orientation = world_from_tcp.to_pybullet()
-        starts = [np.asarray(seed_q if seed_q is not None else self.arm_q(), dtype=np.float64)]
-        starts += [rng.uniform(self.lower_limits, self.upper_limits) for _ in range(settings.restarts - 1)]
+        first = np.asarray(seed_q if seed_q is not None else self.arm_q(), dtype=np.float64)
+        starts = [first, self._facing(first, world_from_tcp.position)][:settings.restarts]
+        starts += [rng.uniform(self.lower_limits, self.upper_limits) for _ in range(settings.restarts - 2)]
         best_error = np.inf
         for start in starts:
             q = start

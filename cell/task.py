@@ -337,8 +337,11 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         world.hold(name, grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
         valid = world.validity(transit=True)
         if not valid(insertion[0]) or not valid(lift[-1]):
-            world.hold(name, grasp, grasp.width_m)
+            world.hold(name, grasp, grasp.width_m, margin_m=0.0)  # as it is, if its ends allow
             valid = world.validity()
+            if not valid(insertion[0]) or not valid(lift[-1]):
+                world.hold(name, grasp, grasp.width_m)
+                valid = world.validity()
             if not valid(insertion[0]):
                 raise TaskPlanningError("goal_in_collision", name, "move to the target", "the pre-place "
                                         f"configuration collides ({world._collision_words(insertion[0])})")
