@@ -270,7 +270,8 @@ def _timed(world: CellWorld, path: np.ndarray, valid, part: str, stage: str):
     if len(path) < 2:
         path = np.stack([path[0], path[0] + 1e-9])
     try:
-        return time_path(path, PANDA_LIMITS, is_valid=valid)
+        return time_path(path, PANDA_LIMITS, is_valid=valid,
+                         position_limits=(world.panda.lower_limits, world.panda.upper_limits))
     except ValueError as exc:
         raise TaskPlanningError("straight_line_blocked", part, stage, str(exc)) from exc
     finally:

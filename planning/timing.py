@@ -173,17 +173,9 @@ def plan_corners(waypoints: np.ndarray, limits: JointLimits, max_deviation_rad: 
             velocities[-1] = corners[last].speed * units[last - 1]
         total = 0.0
         for i, blend in enumerate(blends):
-            try:
-                piece = _time_segment(points[i], velocities[i], points[i + 1], velocities[i + 1], limits)
-            except (ValueError, RuckigError):
-                return np.inf
-            if blend < 0 and not _stays_on_segment(piece):
-                return np.inf
-            if blend < 0 and not isinstance(piece, StraightSegment) and _blend_deviation(
-                    piece, points[i], points[i], points[i + 1]) > max_deviation_rad:
-                return np.inf  # a straight piece Ruckig could not keep on its line (e.g. of zero length)
-            if blend >= 0 and _blend_deviation(piece, points[i], waypoints[first + blend],
-                                               points[i + 1]) > max_deviation_rad:
+            piece = _feasible_piece(points, velocities, i, None if blend < 0 else waypoints[first + blend], limits,
+                                    max_deviation_rad)
+            if piece is None:
                 return np.inf
             total += piece.duration
         return total
@@ -217,7 +209,41 @@ def plan_corners(waypoints: np.ndarray, limits: JointLimits, max_deviation_rad: 
                 if not improved:
                     step /= 2
             corners[k] = best_corner
+    # a corner whose every choice was infeasible kept its stop while a neighbour's blend, chosen before, relies
+    # on it not stopping (e.g. a straight piece entering a stop too fast to halt on it): stop there too
+    for _ in range(count):
+        points, velocities, blends = _breakpoints(waypoints, corners)
+        bad = next((i for i, blend in enumerate(blends) if _feasible_piece(
+            points, velocities, i, None if blend < 0 else waypoints[blend], limits, max_deviation_rad) is None), None)
+        if bad is None:
+            break
+        culprits = [k for k in _corners_of_piece(waypoints, corners, bad) if not corners[k].stops]
+        if not culprits:
+            raise ValueError(f"piece {bad} of a path stopping at its waypoints cannot be timed")
+        for k in culprits:
+            corners[k] = STOP
     return corners
+
+
+def _feasible_piece(points: np.ndarray, velocities: np.ndarray, i: int, corner: np.ndarray | None,
+                    limits: JointLimits, max_deviation_rad: float):
+    """Piece ``i`` from ``points[i]`` to ``points[i + 1]`` timed by Ruckig, or None where it is infeasible: Ruckig
+    fails, a straight piece overshoots its ends or leaves its line, or a blend (around ``corner``, None for a
+    straight piece) strays more than ``max_deviation_rad`` from the path."""
+    try:
+        piece = _time_segment(points[i], velocities[i], points[i + 1], velocities[i + 1], limits)
+    except (ValueError, RuckigError):
+        return None
+    if corner is None:
+        if not _stays_on_segment(piece):
+            return None
+        if not isinstance(piece, StraightSegment) and _blend_deviation(
+                piece, points[i], points[i], points[i + 1]) > max_deviation_rad:
+            return None  # a straight piece Ruckig could not keep on its line (e.g. of zero length)
+        return piece
+    if _blend_deviation(piece, points[i], corner, points[i + 1]) > max_deviation_rad:
+        return None
+    return piece
 
 
 def time_corners(waypoints: np.ndarray, limits: JointLimits, corners: Sequence[Corner]) -> TimedPath:
@@ -319,8 +345,8 @@ def first_invalid_sample(timed: TimedPath, is_valid: Callable[[np.ndarray], bool
     return int(np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(timed.segments) - 1)), t
 
 
-def _corner_of(timed: TimedPath, waypoints: np.ndarray, corners: Sequence[Corner], piece: int) -> list[int]:
-    """The interior waypoints whose passing a piece of ``timed`` belongs to: the blended corner, or, for a
+def _corners_of_piece(waypoints: np.ndarray, corners: Sequence[Corner], piece: int) -> list[int]:
+    """The interior waypoints whose passing piece ``piece`` of the motion belongs to: the blended corner, or, for a
     straight piece, the corners at its two ends."""
     _, _, blends = _breakpoints(waypoints, corners)
     if blends[piece] >= 0:
@@ -330,28 +356,84 @@ def _corner_of(timed: TimedPath, waypoints: np.ndarray, corners: Sequence[Corner
     return [k for k in (passed, passed + 1) if 0 < k < len(waypoints) - 1]
 
 
+def first_over_limits(timed: TimedPath, lower: np.ndarray, upper: np.ndarray) -> tuple[int, float] | None:
+    """(segment index, time from the start) of the first piece of ``timed`` whose exact position extrema (Ruckig's)
+    leave [lower, upper] (rad), or None. Straight pieces stay between their end points."""
+    start = 0.0
+    for index, segment in enumerate(timed.segments):
+        if not isinstance(segment, StraightSegment):
+            for j, extremum in enumerate(segment.position_extrema):
+                if extremum.min < lower[j] - 1e-12 or extremum.max > upper[j] + 1e-12:
+                    t = extremum.t_min if extremum.min < lower[j] - 1e-12 else extremum.t_max
+                    return index, start + float(t)
+        start += float(timed.durations[index])
+    return None
+
+
+def _with_position_limits(is_valid, first_invalid, waypoints: np.ndarray, position_limits):
+    """The validity checks of :func:`time_path` extended by the joints' position limits (batch form)."""
+    lower, upper = (np.asarray(b, dtype=np.float64) for b in position_limits)
+    outside = (waypoints < lower - 1e-12) | (waypoints > upper + 1e-12)
+    if outside.any():
+        k, j = np.argwhere(outside)[0]
+        raise ValueError(f"waypoint {k} has joint {j + 1} at {waypoints[k, j]:.4f} rad, outside its limits "
+                         f"{lower[j]:.4f} .. {upper[j]:.4f}")
+
+    def batch(qs: np.ndarray) -> int | None:
+        outside = np.flatnonzero(~np.all((qs >= lower) & (qs <= upper), axis=1))
+        count = int(outside[0]) if len(outside) else len(qs)  # the samples before the first one outside
+        if first_invalid is not None:
+            index = first_invalid(qs[:count]) if count else None
+        elif is_valid is not None:
+            index = next((i for i in range(count) if not is_valid(qs[i])), None)
+        else:
+            index = None
+        if index is not None:
+            return int(index)
+        return count if count < len(qs) else None
+
+    return None, batch
+
+
 def time_path(waypoints: Sequence[np.ndarray], limits: JointLimits,
               is_valid: Callable[[np.ndarray], bool] | None = None, max_repairs: int = 60,
               first_invalid: Callable[[np.ndarray], int | None] | None = None,
-              max_deviation_rad: float = MAX_DEVIATION_RAD) -> TimedPath:
+              max_deviation_rad: float = MAX_DEVIATION_RAD,
+              position_limits: tuple[np.ndarray, np.ndarray] | None = None) -> TimedPath:
     """Time a path without stopping at its waypoints (blends from :func:`plan_corners`). With ``is_valid`` (one
     configuration) or ``first_invalid`` (a batch, see :func:`first_invalid_sample`), the timed motion is re-checked
     densely; where a blend collides, that corner's blend distance is halved (and its speed chosen again), and after
-    two halvings the motion stops at the waypoint; then the path is timed again."""
+    two halvings the motion stops at the waypoint; then the path is timed again.
+
+    ``position_limits`` (lower, upper; rad): a blend that overshoots a joint's position limit (a path running along
+    the limit) is treated like one that collides. The waypoints themselves must lie within the limits; the straight
+    pieces between them then do too."""
     waypoints = np.asarray(waypoints, dtype=np.float64)
     if len(waypoints) < 2:
         raise ValueError("a path needs at least two waypoints")
+    bounds = None
+    if position_limits is not None:
+        bounds = tuple(np.asarray(b, dtype=np.float64) for b in position_limits)
+        is_valid, first_invalid = _with_position_limits(is_valid, first_invalid, waypoints, bounds)
     corners = plan_corners(waypoints, limits, max_deviation_rad)
     timed = time_corners(waypoints, limits, corners)
     if is_valid is None and first_invalid is None:
         return timed
+
+    def find_hit(current: TimedPath) -> tuple[int, float] | None:
+        hits = [first_invalid_sample(current, is_valid, first_invalid=first_invalid)]
+        if bounds is not None:  # exactly, between the samples too
+            hits.append(first_over_limits(current, *bounds))
+        hits = [h for h in hits if h is not None]
+        return min(hits, key=lambda h: h[1]) if hits else None
+
     allowed = [c.distance_rad for c in corners]
     shrunk = [0] * len(waypoints)
     for _ in range(max_repairs):
-        hit = first_invalid_sample(timed, is_valid, first_invalid=first_invalid)
+        hit = find_hit(timed)
         if hit is None:
             return timed
-        culprits = [k for k in _corner_of(timed, waypoints, corners, hit[0]) if not corners[k].stops]
+        culprits = [k for k in _corners_of_piece(waypoints, corners, hit[0]) if not corners[k].stops]
         if not culprits:
             break  # a straight piece between stops collides: the path itself is invalid
         for k in culprits:
@@ -360,7 +442,7 @@ def time_path(waypoints: Sequence[np.ndarray], limits: JointLimits,
         corners = plan_corners(waypoints, limits, max_deviation_rad, allowed=allowed)
         corners = [STOP if a <= 0.0 else c for c, a in zip(corners, allowed)]
         timed = time_corners(waypoints, limits, corners)
-    hit = first_invalid_sample(timed, is_valid, first_invalid=first_invalid)
+    hit = find_hit(timed)
     if hit is not None:
         raise ValueError(f"the timed motion collides at t = {hit[1]:.3f} s in segment {hit[0]} even when stopping "
                          "at its waypoints: the path itself is not collision-free")

@@ -2,9 +2,10 @@
 blend would leave the allowed region."""
 
 import numpy as np
+import pytest
 
 from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS
-from planning.timing import JointLimits, StraightSegment, time_path, time_waypoints
+from planning.timing import JointLimits, StraightSegment, first_over_limits, time_path, time_waypoints
 
 LIMITS = JointLimits(VELOCITY_LIMITS, ACCELERATION_LIMITS, JERK_LIMITS)
 
@@ -107,3 +108,43 @@ def test_a_colliding_blend_is_tightened_before_stopping():
     assert all(near_polyline(c) for c in q)
     stopping = time_waypoints(waypoints, LIMITS, np.zeros_like(waypoints))
     assert free.duration <= timed.duration < stopping.duration  # tighter blends, not stops everywhere
+
+
+# a straight Cartesian approach recorded from a benchmark table (procedural table 4): joint 5 runs up to its
+# upper limit (2.9671 rad) and then along it; the timer once blended into the third waypoint too fast to stop
+# at the fourth, and the straight piece overshot its end (and the joint limit) by 3 mm of arc
+ALONG_THE_LIMIT = np.array([
+    [-2.172468, -1.248486, 1.187657, -2.556638, 2.947305, 2.911673, 0.481001],
+    [-2.243268, -1.228457, 1.211639, -2.513071, 2.954838, 2.885302, 0.477279],
+    [-2.313061, -1.209775, 1.236682, -2.467041, 2.961823, 2.86316, 0.473807],
+    [-2.381925, -1.192346, 1.26262, -2.418601, 2.9671, 2.845069, 0.470275],
+    [-2.449739, -1.175263, 1.28913, -2.367705, 2.9671, 2.830985, 0.464873]])
+
+
+def test_no_piece_overshoots_its_waypoints_along_a_joint_limit():
+    timed = time_path(ALONG_THE_LIMIT, LIMITS, is_valid=lambda q: True)
+    _, q, _, _ = timed.sample(1000.0)
+    assert q[:, 4].max() <= 2.9671 + 1e-9
+    # every sample lies within the box of the waypoints (joint by joint): nothing leaves the planned path's range
+    assert np.all(q >= ALONG_THE_LIMIT.min(axis=0) - 0.05) and np.all(q <= ALONG_THE_LIMIT.max(axis=0) + 0.05)
+    for segment in timed.segments:
+        if isinstance(segment, StraightSegment):
+            extrema = segment.trajectory.position_extrema[0]
+            assert -1e-9 <= extrema.min and extrema.max <= segment.length + 1e-9
+
+
+def test_position_limits_are_found_between_samples_and_kept():
+    upper = np.full(7, 1.0)
+    lower = -upper
+    # a motion that reaches the limit still moving outwards: the next piece overshoots it
+    waypoints = np.array([np.zeros(7), np.full(7, 1.0), np.full(7, 0.5)])
+    velocities = np.array([np.zeros(7), np.full(7, 0.5), np.zeros(7)])
+    overshooting = time_waypoints(waypoints, LIMITS, velocities)
+    hit = first_over_limits(overshooting, lower, upper)
+    assert hit is not None and hit[0] == 1 and overshooting.durations[0] < hit[1] < overshooting.duration
+    # time_path keeps within the limits it is given, and refuses waypoints outside them with the joint named
+    timed = time_path(ALONG_THE_LIMIT, LIMITS, is_valid=lambda q: True,
+                      position_limits=(np.full(7, -3.0), np.full(7, 2.9671)))
+    assert first_over_limits(timed, np.full(7, -3.0), np.full(7, 2.9671)) is None
+    with pytest.raises(ValueError, match="waypoint 2 has joint 5 at 2.9618"):
+        time_path(ALONG_THE_LIMIT, LIMITS, is_valid=lambda q: True, position_limits=(np.full(7, -3.0), np.full(7, 2.96)))
