@@ -27,6 +27,7 @@ from planning.grasp import Grasp, feasible_grasps
 from planning.gripper import clearance_gripper
 from planning.kitting import HAND_CLEARANCE_M, KittingArea, KittingError, KittingSlot, Reach, plan_kitting
 from planning.motion import MotionSettings
+from planning.payload import mass_properties
 from planning.pose import Pose
 from planning.robot_collision import RobotCollisionChecker
 
@@ -264,6 +265,7 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
     order = sequence.order
     steps = {s.part: s for s in sequence.steps}
     targets = {p.name: world_from_assembly @ p.assembly_from_part for p in assembly.parts}
+    payloads = {p.name: mass_properties(p.mesh) for p in assembly.parts}
 
     with BulletClient() as client:
         panda = Panda(client, scene.robot.world_from_base, scene.robot.urdf)
@@ -327,7 +329,8 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
                 grasp, reach = options[slot.part][0]
                 tasks.append(PartTask(slot.part, slot.world_from_part, targets[slot.part], grasp,
                                       np.asarray(step.insertion_direction, dtype=np.float64), touches[slot.part],
-                                      slot.rests_on or f"pedestal {slot.part}", reach[0][0], reach[1][0]))
+                                      slot.rests_on or f"pedestal {slot.part}", reach[0][0], reach[1][0],
+                                      payloads[slot.part]))
             world = CellWorld(panda, scene.robot.world_from_base, convex_static, convex_parts,
                               np.random.default_rng([seed, 2, attempt]), motion or MotionSettings())
             try:

@@ -95,9 +95,9 @@ class Panda:
                     settings: IKSettings = IKSettings()) -> np.ndarray:
         """Arm configuration placing the TCP at ``world_from_tcp``; raises :class:`IKError`.
 
-        The first start is ``seed_q`` (or the current configuration), the second (with ``restarts`` >= 2) the same turned by joint 1 to
-        face the target (so that the arm reaches out towards it, elbow up, rather than folding over its own base
-        from a random start), the others uniform within the limits.
+        The first start is ``seed_q`` (or the current configuration), the second (with ``restarts`` >= 2) the
+        same turned by joint 1 to face the target (so that the arm reaches out towards it, elbow up, rather than
+        folding over its own base from a random start), the others uniform within the limits.
         """
         position, orientation = world_from_tcp.to_pybullet()
         first = np.asarray(seed_q if seed_q is not None else self.arm_q(), dtype=np.float64)

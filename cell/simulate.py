@@ -70,6 +70,7 @@ from cell.robot import VELOCITY_LIMITS, Panda
 from cell.scene import CameraConfig
 from cell.symmetry import part_symmetry, position_error_m, rotation_error_deg
 from planning.convex import convex_pieces, mesh_key
+from planning.payload import DEFAULT_DENSITY_KG_M3, MassProperties, mass_properties
 from planning.pose import Pose
 from planning.robot_collision import ALLOWED_SELF_PAIRS, ARM_JOINTS
 
@@ -127,7 +128,7 @@ class SimSettings:
     rotation_tolerance_deg: float = 3.0  # ... and turned by less than this (modulo its symmetries) is placed
     settle_s: float = 0.5  # the world settles this long before the program and again after it
     settle_tolerance_m: float = 0.003  # a part moving more while settling at the start is reported
-    density_kg_m3: float = 600.0  # wood
+    density_kg_m3: float = DEFAULT_DENSITY_KG_M3  # wood; the planner slows heavy carries with the same
     friction: float = 0.6  # parts and static bodies (the fingers keep the URDF's 1.0)
     joint_clearance_m: float = 0.0005  # two parts planned face to face meet with this gap (each is inset by half)
     finger_force_n: float = 20.0  # per finger (the URDF's effort limit)
@@ -282,26 +283,6 @@ class SimulationResult:
 
 
 # --- building the cell ------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class _MassProperties:
-    mass_kg: float
-    part_from_com: Pose  # centre of mass, axes along the principal axes of inertia
-    inertia_kg_m2: tuple[float, float, float]  # principal moments
-
-
-def mass_properties(mesh: trimesh.Trimesh, density_kg_m3: float) -> _MassProperties:
-    """Mass, centre of mass and principal inertia of a part of uniform density (its mesh if closed, else the
-    union of its convex pieces)."""
-    solid = mesh if mesh.is_volume else trimesh.util.concatenate(convex_pieces(mesh))
-    solid = solid.copy()
-    solid.density = density_kg_m3
-    moments, axes = np.linalg.eigh(np.asarray(solid.moment_inertia, dtype=np.float64))
-    if np.linalg.det(axes) < 0:
-        axes[:, 0] *= -1.0
-    return _MassProperties(float(solid.mass), Pose.from_rotation(axes, solid.center_mass),
-                           tuple(float(max(m, 1e-9)) for m in moments))
-
-
 def inset(piece: trimesh.Trimesh, distance_m: float) -> trimesh.Trimesh:
     """The convex ``piece`` with every face moved inwards by ``distance_m`` (metres; the intersection of its faces'
     half-spaces); a piece too thin for that is returned as it is."""
@@ -373,7 +354,7 @@ class _Cell:
             if a in index_of and b in index_of:
                 pb.setCollisionFilterPair(self.robot, self.robot, index_of[a], index_of[b], 0, physicsClientId=cid)
 
-    def _add_body(self, folder: Path, mesh: trimesh.Trimesh, world_from_body: Pose, props: _MassProperties | None,
+    def _add_body(self, folder: Path, mesh: trimesh.Trimesh, world_from_body: Pose, props: MassProperties | None,
                   rgba, inset_m: float = 0.0) -> int:
         pb, cid = self.pb, self.cid
         path = folder / f"{mesh_key(mesh)}-{inset_m:.6f}.obj"

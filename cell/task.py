@@ -36,6 +36,7 @@ from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS, IKErro
 from planning.collision import ConvexPart, shrunk, signed_distance
 from planning.grasp import Grasp
 from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path, straight_line_valid
+from planning.payload import MassProperties, carry_limits
 from planning.pose import Pose
 from planning.robot_collision import RobotCollisionChecker
 from planning.timing import JointLimits, time_path
@@ -80,6 +81,7 @@ class PartTask:
     pedestal: str  # the obstacle it rests on at the pick (its pedestal, or the board it lies on)
     pick_q_hint: np.ndarray | None = None  # an arm configuration known to reach the grasp (from kitting)
     place_q_hint: np.ndarray | None = None  # ... and the release at the target
+    payload: MassProperties | None = None  # the part's mass properties (part frame); None: carried at full speed
 
 
 @dataclass
@@ -263,14 +265,16 @@ class _Validity:
                                           ignore=self.ignore)
 
 
-def _timed(world: CellWorld, path: np.ndarray, valid, part: str, stage: str):
-    """Time a joint path with Ruckig (adds the seconds spent to ``world.timing_seconds``)."""
+def _timed(world: CellWorld, path: np.ndarray, valid, part: str, stage: str,
+           limits: JointLimits = PANDA_LIMITS):
+    """Time a joint path with Ruckig within ``limits`` and the joints' position limits (adds the seconds spent to
+    ``world.timing_seconds``)."""
     started = time.perf_counter()
     path = _drop_repeats(path)
     if len(path) < 2:
         path = np.stack([path[0], path[0] + 1e-9])
     try:
-        return time_path(path, PANDA_LIMITS, is_valid=valid,
+        return time_path(path, limits, is_valid=valid,
                          position_limits=(world.panda.lower_limits, world.panda.upper_limits))
     except ValueError as exc:
         raise TaskPlanningError("straight_line_blocked", part, stage, str(exc)) from exc
@@ -296,12 +300,16 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
     world.set_part_poses(poses)
     q = np.asarray(home_q, dtype=np.float64)
 
-    def add_motion(part: str, label: str, path: np.ndarray, valid, held: str | None) -> None:
-        program.steps.append(MotionStep(f"{part}: {label}", _timed(world, path, valid, part, label), held))
+    def add_motion(part: str, label: str, path: np.ndarray, valid, held: str | None,
+                   limits: JointLimits = PANDA_LIMITS) -> None:
+        program.steps.append(MotionStep(f"{part}: {label}", _timed(world, path, valid, part, label, limits), held))
 
     opening = program.initial_width_m
     for index, task in enumerate(tasks):
         name, grasp = task.part, task.grasp
+        # a heavy part is carried slower (the wrist's torque, planning/payload.py)
+        carrying = PANDA_LIMITS if task.payload is None else carry_limits(PANDA_LIMITS, task.payload,
+                                                                          grasp.part_from_tcp)
         if time.perf_counter() > deadline:
             raise TaskPlanningError("timeout", name, "planning", "the planning time budget ran out")
         # --- pick ------------------------------------------------------------------------------------------
@@ -325,7 +333,7 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         world.hold(name, grasp, grasp.width_m)
         valid = world.validity(frozenset({task.pedestal}))
         lift = world.straight_line(grasp_q, tcp_pick, np.array([0.0, 0.0, LIFT_M]), valid, name, "lift")
-        add_motion(name, "lift", lift, valid, name)
+        add_motion(name, "lift", lift, valid, name, carrying)
         tcp_place = task.world_from_target @ grasp.part_from_tcp
         ignore_at_target = frozenset(task.touches_at_target)
         valid_insert = world.validity(ignore_at_target)
@@ -347,9 +355,9 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
                 raise TaskPlanningError("goal_in_collision", name, "move to the target", "the pre-place "
                                         f"configuration collides ({world._collision_words(insertion[0])})")
         carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
-        add_motion(name, "move to the target", carry, valid, name)
+        add_motion(name, "move to the target", carry, valid, name, carrying)
         world.hold(name, grasp, grasp.width_m)
-        add_motion(name, "insert", insertion, valid_insert, name)
+        add_motion(name, "insert", insertion, valid_insert, name, carrying)
         # --- release ---------------------------------------------------------------------------------------
         program.steps.append(GripperStep(f"{name}: open", grasp.opening_m, name))
         poses[name] = task.world_from_target

@@ -67,6 +67,32 @@ def test_resume_refuses_another_model(data, uninterrupted, tmp_path, capsys):
     assert "b_global" in capsys.readouterr().err
 
 
+def test_init_starts_from_given_weights_and_refuses_another_model(data, uninterrupted, tmp_path, capsys):
+    start = weights(uninterrupted / MODEL)
+    out = tmp_path / "finetune"
+    args = ["--config", "tiny", "--data", str(data), "--out", str(out), "--no-progress",
+            "--init", str(uninterrupted / MODEL)]
+    assert main([*args, "--stop-after", "1"]) == 0  # one segmentation step: the pose network is untouched
+    after = torch.load(out / CHECKPOINT, map_location="cpu", weights_only=False)["model"]
+    pose = [k for k in start if not k.startswith("segmentation.")]
+    assert pose and all(torch.equal(start[k], after[k]) for k in pose)
+    assert any(not torch.equal(start[k], after[k]) for k in start if k.startswith("segmentation."))
+    fresh = tmp_path / "fresh"
+    assert main(["--config", "tiny", "--data", str(data), "--out", str(fresh), "--no-progress",
+                 "--stop-after", "1"]) == 0
+    random = torch.load(fresh / CHECKPOINT, map_location="cpu", weights_only=False)["model"]
+    assert any(not torch.equal(start[k], random[k]) for k in pose)
+    # a baseline's weights do not fit the paper's network: refused, naming the file
+    gru = tmp_path / "gru"
+    assert main(["--config", "tiny", "--data", str(data), "--out", str(gru), "--no-progress", "--model", "b_gru",
+                 "--max-steps", "1"]) == 0
+    capsys.readouterr()
+    assert main(["--config", "tiny", "--data", str(data), "--out", str(tmp_path / "wrong"), "--no-progress",
+                 "--init", str(gru / MODEL)]) == 2
+    err = capsys.readouterr().err
+    assert str(gru / MODEL) in err and "b_gru" in err
+
+
 def test_baseline_trains(data, tmp_path):
     out = tmp_path / "gru"
     assert main(["--config", "tiny", "--data", str(data), "--out", str(out), "--no-progress", "--model", "b_gru",

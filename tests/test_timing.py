@@ -147,4 +147,5 @@ def test_position_limits_are_found_between_samples_and_kept():
                       position_limits=(np.full(7, -3.0), np.full(7, 2.9671)))
     assert first_over_limits(timed, np.full(7, -3.0), np.full(7, 2.9671)) is None
     with pytest.raises(ValueError, match="waypoint 2 has joint 5 at 2.9618"):
-        time_path(ALONG_THE_LIMIT, LIMITS, is_valid=lambda q: True, position_limits=(np.full(7, -3.0), np.full(7, 2.96)))
+        time_path(ALONG_THE_LIMIT, LIMITS, is_valid=lambda q: True,
+                  position_limits=(np.full(7, -3.0), np.full(7, 2.96)))

@@ -26,6 +26,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--data", nargs="+", help="dataset folders (default: data.paths of the config)")
     parser.add_argument("--out", required=True, help="output folder: checkpoint.pt, log.json, model.pt")
     parser.add_argument("--model", default="ours", choices=sorted(MODELS), help="network (default: ours)")
+    parser.add_argument("--init", help="start from the weights of this model.pt or checkpoint.pt (fine-tuning, e.g. "
+                        "from perception/weights/compact.pt); the config's architecture must match; ignored when "
+                        "resuming OUT/checkpoint.pt")
     parser.add_argument("--max-steps", type=int, help="cap every stage at N optimiser steps (smoke runs)")
     parser.add_argument("--stop-after", type=int, help="checkpoint and stop after N steps in all, as an "
                         "interruption would (to test resuming)")
@@ -45,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.data:
             config = replace(config, data=replace(config.data, paths=tuple(args.data)))
         log = train(config, args.out, kind=args.model, max_steps=args.max_steps, stop_after=args.stop_after,
-                    progress=not args.no_progress)
+                    progress=not args.no_progress, init=args.init)
     except StopRequested as stop:
         print(f"{stop}; checkpoint written, run the same command again to resume", file=sys.stderr)
         return 130 if stop.by_signal else 0

@@ -90,28 +90,53 @@ def stop_on_signals():
 
 
 def train(config: Config, out: str | Path, kind: str = "ours", max_steps: int | None = None,
-          stop_after: int | None = None, progress: bool = True) -> dict:
-    """Train (or resume) in ``out``. Returns the final log; raises :class:`StopRequested` after a clean stop."""
+          stop_after: int | None = None, progress: bool = True, init: str | Path | None = None) -> dict:
+    """Train (or resume) in ``out``. Returns the final log; raises :class:`StopRequested` after a clean stop.
+
+    ``init``: a ``model.pt``/``checkpoint.pt`` whose weights start a new run (fine-tuning); a run that resumes
+    from ``out`` ignores it."""
     out = Path(out)
     dist = distributed.setup()
     try:
         with stop_on_signals() as stop_flag:
-            return _train(config, out, kind, max_steps, stop_after, progress, dist, stop_flag)
+            return _train(config, out, kind, max_steps, stop_after, progress, dist, stop_flag, init)
     finally:
         distributed.cleanup(dist)
 
 
-def _train(config, out, kind, max_steps, stop_after, progress, dist, stop_flag) -> dict:
+def _train(config, out, kind, max_steps, stop_after, progress, dist, stop_flag, init=None) -> dict:
     threads = torch.get_num_threads()
     if config.train.threads:
         torch.set_num_threads(config.train.threads)
     try:
-        return _run_stages(config, out, kind, max_steps, stop_after, progress, dist, stop_flag)
+        return _run_stages(config, out, kind, max_steps, stop_after, progress, dist, stop_flag, init)
     finally:
         torch.set_num_threads(threads)
 
 
-def _run_stages(config, out, kind, max_steps, stop_after, progress, dist, stop_flag) -> dict:
+def load_initial_weights(model: torch.nn.Module, path: str | Path, kind: str) -> None:
+    """Copy the weights of the model file ``path`` into ``model``; a file of another model kind or architecture is
+    refused with a :class:`ConfigError` naming the file and the first mismatch."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"--init weights {path} not found")
+    payload = load_checkpoint(path)
+    if not isinstance(payload, dict) or "model" not in payload:
+        raise ConfigError(f"--init {path} is not a perception model file (no model weights)")
+    if payload.get("kind") != kind:
+        raise ConfigError(f"--init {path} holds model {payload.get('kind')!r}, not {kind!r}")
+    own = model.state_dict()
+    for name, value in payload["model"].items():
+        if name not in own or own[name].shape != value.shape:
+            raise ConfigError(f"--init {path}: weight {name} does not fit this config's architecture "
+                              f"({tuple(value.shape)} vs {tuple(own[name].shape) if name in own else 'absent'})")
+    missing = sorted(set(own) - set(payload["model"]))
+    if missing:
+        raise ConfigError(f"--init {path} lacks weight {missing[0]} of this config's architecture")
+    model.load_state_dict({k: v.to(own[k].dtype) for k, v in payload["model"].items()})
+
+
+def _run_stages(config, out, kind, max_steps, stop_after, progress, dist, stop_flag, init=None) -> dict:
     if not config.data.paths:
         raise ConfigError("no training data: give --data DIR or data.paths in the config")
     seed_everything(config.train.seed)
@@ -127,6 +152,11 @@ def _run_stages(config, out, kind, max_steps, stop_after, progress, dist, stop_f
         if dist.main:
             print(f"resuming {checkpoint_path} at stage {state.stage}, step {state.step} "
                   f"({state.global_step} steps done)", flush=True)
+    elif init is not None:
+        load_initial_weights(model, init, kind)
+        model.to(dist.device)
+        if dist.main:
+            print(f"starting from the weights of {init}", flush=True)
 
     train_set = ViewDataset(object_files(config.data.paths, "train", config.data.categories))
     val_set = ViewDataset(object_files(config.data.paths, "val", config.data.categories), config.train.val_samples)
