@@ -53,6 +53,7 @@ IK_ATTEMPTS = 6  # IK solutions tried (each with restarts) for a collision-free 
 JOINT_LIMIT_MARGIN_RAD = 0.01  # configurations keep this from the joint limits (timed motions must not touch them)
 CARRY_CLEARANCE_M = 0.002  # the carried part is grown by this much on its way to the target ...
 TRANSIT_CLEARANCE_M = 0.003  # ... and free-space moves keep this from every obstacle
+NEAR_END_RAD = 0.15  # ... except this close (joint-space distance) to an end that lies closer than that
 SLIDE_CLEARANCE_M = 0.004  # a part inserted along a neighbour's face starts this far off it
 LIMIT_FRACTION = 0.9  # motions are planned at this fraction of the published limits: headroom for tracking
 PANDA_LIMITS = JointLimits(LIMIT_FRACTION * VELOCITY_LIMITS, LIMIT_FRACTION * ACCELERATION_LIMITS,
@@ -265,6 +266,53 @@ class _Validity:
                                           ignore=self.ignore)
 
 
+def _approach_to_pick(world: CellWorld, task: PartTask, q: np.ndarray):
+    """(grasp configuration, straight approach path ending there, the validity they were checked with) for
+    ``task``'s pick: the arm kept
+    :data:`TRANSIT_CLEARANCE_M` from the neighbouring kitting parts where it can be (a link passing a neighbour
+    board 0.1 mm off in this model touches it in the simulator), else as close as the exact check allows. The part
+    and its pedestal are not checked: the grasp planner checked the hand against them."""
+    name, ignore = task.part, frozenset({task.part, task.pedestal})
+    tcp_pick = task.world_from_pick @ task.grasp.part_from_tcp
+    back = -tcp_pick.rotation[:, 2] * APPROACH_M
+    failure = None  # the exact check's, when both fail
+    for transit in (True, False):
+        valid = world.validity(ignore, transit=transit)
+        try:
+            grasp_q = world.solve_ik(tcp_pick, q, valid, name, "grasp at the pick", hint_q=task.pick_q_hint)
+            approach = world.straight_line(grasp_q, tcp_pick, back, valid, name, "approach to the pick")[::-1]
+            return grasp_q, approach, valid
+        except TaskPlanningError as exc:
+            failure = exc
+    raise failure
+
+
+class _ClearExceptNearEnds:
+    """``q -> bool`` for free-space moves whose ends lie closer to something than the transit clearance (a
+    retreat that ends near a placed part): the exact check within ``radius_rad`` (joint-space distance) of either
+    end, the check with clearance everywhere else. Before, such a move was planned without clearance all the way,
+    and a link could graze a kitting part in mid-air."""
+
+    def __init__(self, clear, exact, ends: tuple[np.ndarray, ...], radius_rad: float = NEAR_END_RAD) -> None:
+        self.clear, self.exact, self.radius_rad = clear, exact, radius_rad
+        self.ends = np.array(ends, dtype=np.float64)
+
+    def __call__(self, q) -> bool:
+        if self.clear(q):
+            return True
+        near = float(np.min(np.linalg.norm(self.ends - np.asarray(q, dtype=np.float64), axis=1))) <= self.radius_rad
+        return near and self.exact(q)
+
+
+def _free_space_validity(world: CellWorld, start_q: np.ndarray, goal_q: np.ndarray):
+    """Validity for a move of the empty hand from ``start_q`` to ``goal_q``: with the transit clearance, relaxed
+    near an end that lies closer than that to something (see :class:`_ClearExceptNearEnds`)."""
+    clear = world.validity(transit=True)
+    if clear(start_q) and clear(goal_q):
+        return clear
+    return _ClearExceptNearEnds(clear, world.validity(), (start_q, goal_q))
+
+
 def _timed(world: CellWorld, path: np.ndarray, valid, part: str, stage: str,
            limits: JointLimits = PANDA_LIMITS):
     """Time a joint path with Ruckig within ``limits`` and the joints' position limits (adds the seconds spent to
@@ -315,14 +363,8 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         # --- pick ------------------------------------------------------------------------------------------
         world.hold(None, None, opening)
         tcp_pick = task.world_from_pick @ grasp.part_from_tcp
-        approach_world = tcp_pick.rotation[:, 2]
-        valid = world.validity(frozenset({name, task.pedestal}))  # the grasp planner checked the hand there
-        grasp_q = world.solve_ik(tcp_pick, q, valid, name, "grasp at the pick", hint_q=task.pick_q_hint)
-        approach_path = world.straight_line(grasp_q, tcp_pick, -approach_world * APPROACH_M, valid, name,
-                                            "approach to the pick")[::-1]
-        free = world.validity(transit=True)
-        if not free(q) or not free(approach_path[0]):  # ends too close to something for the margin
-            free = world.validity()
+        grasp_q, approach_path, valid = _approach_to_pick(world, task, q)
+        free = _free_space_validity(world, q, approach_path[0])
         to_pick = world.transit(q, approach_path[0], free, name, "move to the pick")
         add_motion(name, "move to the pick", to_pick, free, None)
         add_motion(name, "approach", approach_path, valid, None)
@@ -381,9 +423,7 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
             progress((index + 1) / len(tasks))
     world.hold(None, None, opening)
     park = _park_configuration(np.asarray(home_q, dtype=np.float64), world.validity(transit=True))
-    free = world.validity(transit=True)
-    if not free(q) or not free(park):
-        free = world.validity()
+    free = _free_space_validity(world, q, park)
     home = world.transit(q, park, free, "-", "return home")
     program.steps.append(MotionStep("return home", _timed(world, home, free, "-", "return home")))
     return plan

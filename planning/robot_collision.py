@@ -2,7 +2,8 @@
 
 Each link is the convex hull of its URDF collision mesh (slightly conservative, as in most motion planners);
 the world is a set of named convex geometries with poses (table, jig pads, kitting parts, placed parts). A
-configuration is valid when no link and no held part touches the world and no two non-adjacent links touch.
+configuration is valid when no link and no held part touches the world and no two non-adjacent links come
+within :data:`SELF_CLEARANCE_M` of each other.
 Pure geometry: forward kinematics comes from the URDF chain of :mod:`planning.kinematics`, not from a simulator.
 
 Speed (every planner calls this thousands of times): the chain is compiled once into seven revolute joints and
@@ -53,6 +54,9 @@ def _allowed_pairs() -> set[frozenset]:
 
 ALLOWED_SELF_PAIRS = _allowed_pairs()
 _REQUEST = fcl.CollisionRequest()  # read-only; a fresh CollisionResult per call (results accumulate contacts)
+_DISTANCE = fcl.DistanceRequest()
+SELF_CLEARANCE_M = 0.003  # two links checked against each other must stay this far apart (PyBullet's hulls carry
+# a margin of about 1.1 mm each, so links 0.01 mm apart in this model touch in the simulator)
 SEGMENT_STEP_M = 0.002  # default: no point of the robot moves more than this between checks along a segment
 _BATCH = 256  # configurations per vectorised forward-kinematics / broad-phase batch
 
@@ -212,8 +216,9 @@ class RobotCollisionChecker:
     """
 
     def __init__(self, world_from_base: np.ndarray, obstacles: dict[str, tuple[ConvexPart, np.ndarray]],
-                 urdf_path: str | None = None) -> None:
+                 urdf_path: str | None = None, self_clearance_m: float = SELF_CLEARANCE_M) -> None:
         self.chain = load_chain(urdf_path or panda_urdf_path())
+        self.self_clearance_m = float(self_clearance_m)
         self.world_from_base = np.asarray(world_from_base, dtype=np.float64)
         self.opening_m = 0.08
         self._compiled = _compile_chain(self.chain, self.opening_m)
@@ -388,13 +393,13 @@ class RobotCollisionChecker:
             body, piece = np.nonzero((lower[0, :, None, :] <= self._world_upper).all(axis=2) & self._pair_mask(ignore))
             n = np.zeros(len(body), dtype=np.int64)
         first, second = self._self_pairs[:, 0], self._self_pairs[:, 1]
-        n_self, k = np.nonzero((lower[:, first] <= upper[:, second]).all(axis=2))
+        n_self, k = np.nonzero((lower[:, first] - self.self_clearance_m <= upper[:, second]).all(axis=2))
         a, b = first[k], second[k]
         # one separating-axis test for both kinds of pairs
         w_centre, w_axes, w_half = self._world_obb
         keep = _obb_overlap(np.concatenate([centre[n, body], centre[n_self, a]]),
                             np.concatenate([rotation[n, body], rotation[n_self, a]]),
-                            np.concatenate([self._body_half[body], self._body_half[a]]),
+                            np.concatenate([self._body_half[body], self._body_half[a] + self.self_clearance_m]),
                             np.concatenate([w_centre[piece], centre[n_self, b]]),
                             np.concatenate([w_axes[piece], rotation[n_self, b]]),
                             np.concatenate([w_half[piece], self._body_half[b]]))
@@ -417,6 +422,12 @@ class RobotCollisionChecker:
                 if not placed[other]:
                     objects[other].setTransform(_fcl_transform(world_from_body[other]))
                     placed[other] = True
+                if self.self_clearance_m > 0.0:
+                    # GJK distance (-1 when they overlap); convex hulls, so this is as cheap as the boolean test
+                    if fcl.distance(objects[body], objects[other], _DISTANCE, fcl.DistanceResult()) < \
+                            self.self_clearance_m:
+                        return int(body), int(other), True
+                    continue
                 target = objects[other]
             else:
                 target = self.world_objects[other]
