@@ -2,8 +2,8 @@
 
 Each link is the convex hull of its URDF collision mesh (slightly conservative, as in most motion planners);
 the world is a set of named convex geometries with poses (table, jig pads, kitting parts, placed parts). A
-configuration is valid when no link and no held part touches the world and no two non-adjacent links come
-within :data:`SELF_CLEARANCE_M` of each other.
+configuration is valid when no held part and no finger touches the world, no other link comes within
+:data:`LINK_CLEARANCE_M` of it and no two non-adjacent links come within :data:`SELF_CLEARANCE_M` of each other.
 Pure geometry: forward kinematics comes from the URDF chain of :mod:`planning.kinematics`, not from a simulator.
 
 Speed (every planner calls this thousands of times): the chain is compiled once into seven revolute joints and
@@ -33,6 +33,7 @@ from planning.kinematics import Chain, load_chain
 
 ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
 FINGER_JOINTS = ("panda_finger_joint1", "panda_finger_joint2")
+FINGER_LINKS = ("panda_leftfinger", "panda_rightfinger")
 TCP_LINK = "panda_grasptarget"
 BASE_LINK = "panda_link0"
 # link pairs never checked against each other: neighbours in the chain and pairs that touch in every
@@ -57,6 +58,8 @@ _REQUEST = fcl.CollisionRequest()  # read-only; a fresh CollisionResult per call
 _DISTANCE = fcl.DistanceRequest()
 SELF_CLEARANCE_M = 0.003  # two links checked against each other must stay this far apart (PyBullet's hulls carry
 # a margin of about 1.1 mm each, so links 0.01 mm apart in this model touch in the simulator)
+LINK_CLEARANCE_M = 0.0015  # the arm's links and the hand (not the fingers) stay this far from the world, for the
+# same reason; the fingers must come close to what they grasp (the grasp planner gives them their own clearance)
 SEGMENT_STEP_M = 0.002  # default: no point of the robot moves more than this between checks along a segment
 _BATCH = 256  # configurations per vectorised forward-kinematics / broad-phase batch
 
@@ -216,9 +219,11 @@ class RobotCollisionChecker:
     """
 
     def __init__(self, world_from_base: np.ndarray, obstacles: dict[str, tuple[ConvexPart, np.ndarray]],
-                 urdf_path: str | None = None, self_clearance_m: float = SELF_CLEARANCE_M) -> None:
+                 urdf_path: str | None = None, self_clearance_m: float = SELF_CLEARANCE_M,
+                 link_clearance_m: float = LINK_CLEARANCE_M) -> None:
         self.chain = load_chain(urdf_path or panda_urdf_path())
         self.self_clearance_m = float(self_clearance_m)
+        self.link_clearance_m = float(link_clearance_m)
         self.world_from_base = np.asarray(world_from_base, dtype=np.float64)
         self.opening_m = 0.08
         self._compiled = _compile_chain(self.chain, self.opening_m)
@@ -323,6 +328,8 @@ class RobotCollisionChecker:
         self._body_objects = objects
         self._body_names = names
         self._vs_world = np.concatenate([self._links_vs_world, np.ones(len(names) - len(self._link_names), bool)])
+        self._body_pad = np.array([self.link_clearance_m if i < len(self._link_names) and n not in FINGER_LINKS
+                                   else 0.0 for i, n in enumerate(names)])
         self._tcp_anchor, self._anchor_from_tcp = links[TCP_LINK]
         self._pair_masks = {}
         signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
@@ -384,13 +391,14 @@ class RobotCollisionChecker:
         rotation = world_from_body[..., :3, :3]
         lower = np.concatenate([low, -high], axis=2)  # (N, M, 6); boxes meet when lower_a <= upper_b
         upper = np.concatenate([high, -low], axis=2)
+        padded = lower - self._body_pad[None, :, None]  # against the world: the links' clearance
         if len(low) > 1:  # world pairs near the whole batch first, then per configuration
-            swept = np.concatenate([low.min(axis=0), -high.max(axis=0)], axis=1)  # (M, 6)
+            swept = padded.min(axis=0)  # (M, 6)
             body, piece = np.nonzero((swept[:, None, :] <= self._world_upper).all(axis=2) & self._pair_mask(ignore))
-            n, k = np.nonzero((lower[:, body] <= self._world_upper[piece]).all(axis=2))
+            n, k = np.nonzero((padded[:, body] <= self._world_upper[piece]).all(axis=2))
             body, piece = body[k], piece[k]
         else:
-            body, piece = np.nonzero((lower[0, :, None, :] <= self._world_upper).all(axis=2) & self._pair_mask(ignore))
+            body, piece = np.nonzero((padded[0, :, None, :] <= self._world_upper).all(axis=2) & self._pair_mask(ignore))
             n = np.zeros(len(body), dtype=np.int64)
         first, second = self._self_pairs[:, 0], self._self_pairs[:, 1]
         n_self, k = np.nonzero((lower[:, first] - self.self_clearance_m <= upper[:, second]).all(axis=2))
@@ -399,7 +407,8 @@ class RobotCollisionChecker:
         w_centre, w_axes, w_half = self._world_obb
         keep = _obb_overlap(np.concatenate([centre[n, body], centre[n_self, a]]),
                             np.concatenate([rotation[n, body], rotation[n_self, a]]),
-                            np.concatenate([self._body_half[body], self._body_half[a] + self.self_clearance_m]),
+                            np.concatenate([self._body_half[body] + self._body_pad[body, None],
+                                            self._body_half[a] + self.self_clearance_m]),
                             np.concatenate([w_centre[piece], centre[n_self, b]]),
                             np.concatenate([w_axes[piece], rotation[n_self, b]]),
                             np.concatenate([w_half[piece], self._body_half[b]]))
@@ -431,6 +440,11 @@ class RobotCollisionChecker:
                 target = objects[other]
             else:
                 target = self.world_objects[other]
+                pad = self._body_pad[body]
+                if pad > 0.0:
+                    if fcl.distance(objects[body], target, _DISTANCE, fcl.DistanceResult()) < pad:
+                        return int(body), int(other), False
+                    continue
             if fcl.collide(objects[body], target, _REQUEST, fcl.CollisionResult()):
                 return int(body), int(other), rank == 1
         return None

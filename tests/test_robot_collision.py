@@ -128,13 +128,19 @@ def brute_force_valid(checker, world, q, held=None):
         links += [("held", fcl.CollisionObject(g, fcl.Transform(world_from_part[:3, :3], world_from_part[:3, 3])))
                   for g in held[0].geometries]
 
-    def touch(a, b):
+    def touch(a, b, clearance=0.0):
+        if clearance > 0.0:  # GJK distance, -1 when overlapping
+            return fcl.distance(a, b, fcl.DistanceRequest(), fcl.DistanceResult()) < clearance
         return fcl.collide(a, b, fcl.CollisionRequest(), fcl.CollisionResult()) > 0
 
-    if any(touch(obj, piece) for link, obj in links if link != BASE_LINK for piece in pieces):
+    def world_clearance(link):  # the fingers and the held part may touch, other links keep their clearance
+        return 0.0 if link in ("held", "panda_leftfinger", "panda_rightfinger") else checker.link_clearance_m
+
+    if any(touch(obj, piece, world_clearance(link)) for link, obj in links if link != BASE_LINK for piece in pieces):
         return False
     links = [(name, obj) for name, obj in links if name != "held"]  # the held part is not checked against links
-    return not any(touch(a, b) for i, (name_a, a) in enumerate(links) for name_b, b in links[i + 1:]
+    return not any(touch(a, b, checker.self_clearance_m) for i, (name_a, a) in enumerate(links)
+                   for name_b, b in links[i + 1:]
                    if name_a != name_b and frozenset((name_a, name_b)) not in ALLOWED_SELF_PAIRS)
 
 
