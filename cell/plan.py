@@ -20,7 +20,7 @@ from cell.robot import IKError, IKSettings, Panda
 from cell.scene import FixtureConfig, Scene
 from cell.task import APPROACH_M, INSERTION_M, LIFT_M, CellWorld, PartTask, TaskPlan, TaskPlanningError, plan_tasks
 from planning.assembly import Assembly
-from planning.collision import ConvexPart
+from planning.collision import ConvexPart, box_distance, world_bounds
 from planning.disassembly import SequenceResult
 from planning.fixture import fixture_pads
 from planning.grasp import Grasp, feasible_grasps
@@ -289,9 +289,9 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
         ranked: dict[str, list[Grasp]] = {}
         for name in order:  # grasps clear of the hand's surroundings at the target, ranked for the target
             before = order[:order.index(name)]
+            bounds = world_bounds(assembly.part(name).mesh, targets[name])
             near = [(assembly.part(n).mesh, targets[n]) for n in before
-                    if _distance(targets[n], assembly.part(n).mesh, targets[name], assembly.part(name).mesh)
-                    < NEAR_TARGET_M]
+                    if box_distance(world_bounds(assembly.part(n).mesh, targets[n]), bounds) < NEAR_TARGET_M]
             ranked[name] = feasible_grasps(candidates[name], targets[name], near + pad_obstacles,
                                            steps[name].insertion_direction, floor_z=scene.table.top_z,
                                            gripper=clearance_gripper(HAND_CLEARANCE_M))
@@ -353,12 +353,6 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
         seconds["motion"] = time.perf_counter() - started - timing_seconds
         limits = (panda.lower_limits.copy(), panda.upper_limits.copy())
     return CellPlan(world_from_assembly, static, slots, tasks, task_plan, limits, seconds)
-
-
-def _distance(pose_a: Pose, mesh_a: trimesh.Trimesh, pose_b: Pose, mesh_b: trimesh.Trimesh) -> float:
-    a, b = pose_a.apply(mesh_a.vertices), pose_b.apply(mesh_b.vertices)
-    gaps = np.maximum(0.0, np.maximum(b.min(axis=0) - a.max(axis=0), a.min(axis=0) - b.max(axis=0)))
-    return float(np.linalg.norm(gaps))
 
 
 __all__ = ["CellPlan", "PlanningFailed", "StaticObstacle", "out_of_reach", "plan_cell"]

@@ -101,6 +101,19 @@ def box_gap(bounds_a: np.ndarray, bounds_b: np.ndarray) -> np.ndarray:
     return gaps.max(axis=-1)
 
 
+def world_bounds(mesh: trimesh.Trimesh, world_from_mesh: Pose) -> np.ndarray:
+    """Axis-aligned box (2, 3) of ``mesh`` placed at ``world_from_mesh``: (min corner, max corner), metres."""
+    world = world_from_mesh.apply(np.asarray(mesh.vertices, dtype=np.float64))
+    return np.stack([world.min(axis=0), world.max(axis=0)])
+
+
+def box_distance(bounds_a: np.ndarray, bounds_b: np.ndarray) -> float:
+    """Euclidean distance between two axis-aligned boxes (2, 3) (0 when they touch or overlap): a lower bound of
+    the distance between what they enclose."""
+    gaps = np.maximum(0.0, np.maximum(bounds_b[0] - bounds_a[1], bounds_a[0] - bounds_b[1]))
+    return float(np.linalg.norm(gaps))
+
+
 @dataclass(frozen=True)
 class DistanceResult:
     """Signed distance between two parts (metres), with, when measured, the witness points (world frame, when

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from planning.assembly import Assembly, AssemblyError, read_assembly, read_poses
-from planning.collision import ConvexPart
+from planning.collision import ConvexPart, box_distance, world_bounds
 from planning.convex import mesh_key
 from planning.disassembly import SequenceResult, _direction_label, plan_sequence
 from planning.fixture import PAD_HEIGHT_M, fixture_pads
@@ -79,7 +79,7 @@ class GraspChecker:
     def __init__(self, assembly: Assembly, seed: int = 0) -> None:
         self.assembly = assembly
         self.candidates = GraspCandidates(assembly, seed)
-        self.bounds = {p.name: _world_bounds(p) for p in assembly.parts}
+        self.bounds = {p.name: world_bounds(p.mesh, p.assembly_from_part) for p in assembly.parts}
         self.pads = fixture_pads(assembly.part_names, assembly.meshes_in_assembly_frame())
         self.pad_obstacles = [(pad.mesh(), pad.assembly_from_pad) for pad in self.pads]
 
@@ -89,21 +89,11 @@ class GraspChecker:
             return None
         part = self.assembly.part(name)
         near = [self.assembly.part(n) for n in sorted(present)
-                if _box_distance(self.bounds[name], self.bounds[n]) < HAND_REACH_M]
+                if box_distance(self.bounds[name], self.bounds[n]) < HAND_REACH_M]
         obstacles = [(p.mesh, p.assembly_from_part) for p in near] + self.pad_obstacles
         feasible = feasible_grasps(candidates, part.assembly_from_part, obstacles, insertion_direction,
                                    floor_z=-PAD_HEIGHT_M)
         return feasible[0] if feasible else None
-
-
-def _world_bounds(part) -> np.ndarray:
-    world = part.assembly_from_part.apply(part.mesh.vertices)
-    return np.stack([world.min(axis=0), world.max(axis=0)])
-
-
-def _box_distance(a: np.ndarray, b: np.ndarray) -> float:
-    gaps = np.maximum(0.0, np.maximum(b[0] - a[1], a[0] - b[1]))
-    return float(np.linalg.norm(gaps))
 
 
 def plan_assembly_sequence(assembly: Assembly, seed: int = 0, check_grasps: bool = True,

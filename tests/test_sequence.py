@@ -12,7 +12,7 @@ import trimesh
 from perception.synth import generate
 from planning import sweep
 from planning.assembly import Assembly, AssemblyPart, write_assembly
-from planning.collision import ConvexPart, hull_edge_axes, signed_distance
+from planning.collision import ConvexPart, box_distance, hull_edge_axes, signed_distance, world_bounds
 from planning.contact import FLOOR, contact_graph, support_graph
 from planning.convex import convex_pieces
 from planning.disassembly import plan_sequence
@@ -290,3 +290,14 @@ def test_command_line(tmp_path):
     wrong = subprocess.run([sys.executable, "-m", "planning.sequence", str(folder), "--poses",
                             str(tmp_path / "poses.json")], capture_output=True, text=True)
     assert wrong.returncode == 2 and "missing parts: bottom" in wrong.stderr
+
+
+def test_box_distance_of_placed_meshes():
+    cube = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    here = world_bounds(cube, Pose(np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])))
+    there = world_bounds(cube, Pose(np.array([1.3, 1.4, 0.0]), np.array([1.0, 0.0, 0.0, 0.0])))
+    np.testing.assert_allclose(here, [[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
+    assert box_distance(here, there) == pytest.approx(0.5)  # gaps of 0.3 and 0.4 m along x and y
+    turned = world_bounds(cube, Pose(np.array([1.0, 0.0, 0.0]), np.array([np.cos(np.pi / 8), 0.0, 0.0,
+                                                                          np.sin(np.pi / 8)])))
+    assert box_distance(here, turned) == 0.0  # a cube turned 45 deg about z reaches 0.71 m from its centre
