@@ -589,11 +589,10 @@ class _Layout:
         when no grasp works here or some earlier slot would keep no option."""
         own = [] if pedestal is None else [(pedestal.mesh(), pedestal.world_from_pedestal)]
         obstacles = own + self.obstacles_at_pick(name, corners)
-        feasible = feasible_grasps(grasps, world_from_part, obstacles, None, floor_z=self.area.table_z_m,
-                                   gripper=HAND)
+        feasible = clear_at_pick(grasps, world_from_part, obstacles, self.area.table_z_m, HAND)
         slanted = [g for g in feasible if _slanted(world_from_part, g)]
-        spoiled = {_grasp_key(g) for g in slanted} - {_grasp_key(g) for g in feasible_grasps(
-            slanted, world_from_part, obstacles, None, floor_z=self.area.table_z_m, gripper=TILTED_HAND)}
+        spoiled = {_grasp_key(g) for g in slanted} - {_grasp_key(g) for g in clear_at_pick(
+            slanted, world_from_part, obstacles, self.area.table_z_m, TILTED_HAND)}
         at_pick = {_grasp_key(g) for g in feasible} - spoiled
         # the support (own pedestal, or the board under it) is left out: the grasp check covered the hand
         present = [o for slot in self.slots if base is None or slot.part != base.part
@@ -633,8 +632,8 @@ class _Layout:
             support = [] if slot.pedestal is None else [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal)]
             near = self._near(slot, corners)
             kept = [(grasp, reached) for grasp, reached in self.options[slot.part]
-                    if (not near or feasible_grasps([grasp], slot.world_from_part, added + support, None,
-                                                    floor_z=self.area.table_z_m, gripper=HAND))
+                    if (not near or clear_at_pick([grasp], slot.world_from_part, added + support,
+                                                  self.area.table_z_m, _hand_for(slot.world_from_part, grasp)))
                     and self.reach.still_clear(reached, added)]  # the arm reaches far beyond the hand
             if not kept:
                 return None
@@ -700,6 +699,31 @@ def _picks_from_above(grasps: Sequence[Grasp], rest_from_part: np.ndarray) -> in
     rotation = rest_from_part[:3, :3]
     return sum(float((rotation @ grasp.part_from_tcp.rotation[:, 2])[2]) <= -FROM_ABOVE
                and _finger_tilt(rotation, grasp) <= LEVEL_FINGERS for grasp in grasps)
+
+
+def _hand_for(world_from_part: Pose, grasp: Grasp):
+    """The hand model a grasp at the pick is checked with: :data:`TILTED_HAND` where its fingers close on a slant,
+    else :data:`HAND` (one rule for a part's own check and for a later neighbour's)."""
+    return TILTED_HAND if _slanted(world_from_part, grasp) else HAND
+
+
+def clear_at_pick(grasps: Sequence[Grasp], world_from_part: Pose, obstacles, floor_z: float,
+                  gripper) -> list[Grasp]:
+    """The ``grasps`` (in their order) whose hand is clear of ``obstacles`` both opened to ``opening_m``, as it
+    arrives, and closed to ``width_m`` on the part, as it lifts: a closing fingertip that reaches below a board's
+    edge moves towards the pedestal under it (5 mm per finger), which the open hand alone does not show."""
+    arriving = feasible_grasps(grasps, world_from_part, obstacles, None, floor_z=floor_z, gripper=gripper)
+    if not arriving:
+        return []
+    closed = feasible_grasps([dataclasses.replace(g, opening_m=g.width_m) for g in arriving], world_from_part,
+                             obstacles, None, floor_z=floor_z, gripper=gripper)
+    kept = {_pose_key(g) for g in arriving} & {_pose_key(g) for g in closed}
+    return [g for g in grasps if _pose_key(g) in kept]
+
+
+def _pose_key(grasp: Grasp) -> tuple:
+    """Where the grasp holds the part, whatever its opening and ranking scores."""
+    return (tuple(np.round(grasp.part_from_tcp.position, 9)), tuple(np.round(grasp.part_from_tcp.quat_wxyz, 9)))
 
 
 def _grasp_key(grasp: Grasp) -> tuple:

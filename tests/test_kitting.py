@@ -5,8 +5,10 @@ import pytest
 import trimesh
 
 from planning.assembly import read_assembly
-from planning.grasp import feasible_grasps
-from planning.kitting import KittingArea, KittingError, _polygons_overlap, plan_kitting, stable_rest_poses
+from planning.grasp import Grasp, feasible_grasps
+from planning.kitting import (HAND, KittingArea, KittingError, _polygons_overlap, clear_at_pick, plan_kitting,
+                              stable_rest_poses)
+from planning.pose import Pose
 from planning.sequence import GraspChecker
 from scenes import sample_folder
 
@@ -122,3 +124,25 @@ def test_a_square_beam_rests_without_chocks():
     rest_from_part, _ = stable_rest_poses(beam)[0]
     _, top = _plain_pedestal_top(beam, rest_from_part)
     assert rests_stably(beam, rest_from_part, top)
+
+
+def test_closing_fingertips_are_checked_against_the_pedestal():
+    """A top-down grasp whose fingertips reach 2 mm below a bar: the open hand clears a pedestal as wide as the
+    bar, the closed fingers would press on it. The check at the pick rejects it there and keeps it on a narrower
+    pedestal."""
+    bar = trimesh.creation.box(extents=(0.2, 0.02, 0.02))
+    world_from_bar = Pose(np.array([0.5, 0.0, 0.13]), np.array([1.0, 0.0, 0.0, 0.0]))  # lying on z = 0.12
+    # approach straight down (TCP z = world -z), fingers closing along y; TCP 9 mm below the bar's centre: the
+    # fingertips (7.2 mm beyond the TCP) reach 6.2 mm below the bar's bottom face
+    down = Pose.from_rotation(np.array([[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]]), np.array([0.0, 0.0,
+                                                                                                         -0.009]))
+    grasp = Grasp(down, width_m=0.02, opening_m=0.03, score=1.0, centroid_score=1.0, contact_score=1.0)
+
+    def pedestal(width_y):
+        box = trimesh.creation.box(extents=(0.1, width_y, 0.12))
+        return [(box, Pose(np.array([0.5, 0.0, 0.06]), np.array([1.0, 0.0, 0.0, 0.0])))]
+
+    assert clear_at_pick([grasp], world_from_bar, pedestal(0.02), 0.0, HAND) == []
+    open_only = feasible_grasps([grasp], world_from_bar, pedestal(0.02), None, floor_z=0.0, gripper=HAND)
+    assert len(open_only) == 1  # the opened hand alone does not show it
+    assert len(clear_at_pick([grasp], world_from_bar, pedestal(0.008), 0.0, HAND)) == 1
