@@ -6,8 +6,15 @@ import trimesh
 
 from planning.assembly import read_assembly
 from planning.grasp import Grasp, feasible_grasps
-from planning.kitting import (HAND, KittingArea, KittingError, _polygons_overlap, clear_at_pick, plan_kitting,
-                              stable_rest_poses)
+from planning.kitting import (
+    HAND,
+    KittingArea,
+    KittingError,
+    _polygons_overlap,
+    clear_at_pick,
+    plan_kitting,
+    stable_rest_poses,
+)
 from planning.pose import Pose
 from planning.sequence import GraspChecker
 from scenes import sample_folder
@@ -130,7 +137,7 @@ def test_closing_fingertips_are_checked_against_the_pedestal():
     """A top-down grasp whose fingertips reach 2 mm below a bar: the open hand clears a pedestal as wide as the
     bar, the closed fingers would press on it. The check at the pick rejects it there and keeps it on a narrower
     pedestal."""
-    bar = trimesh.creation.box(extents=(0.2, 0.02, 0.02))
+    # a 0.2 x 0.02 x 0.02 m bar (only its pose matters: the grasp is given)
     world_from_bar = Pose(np.array([0.5, 0.0, 0.13]), np.array([1.0, 0.0, 0.0, 0.0]))  # lying on z = 0.12
     # approach straight down (TCP z = world -z), fingers closing along y; TCP 9 mm below the bar's centre: the
     # fingertips (7.2 mm beyond the TCP) reach 6.2 mm below the bar's bottom face
