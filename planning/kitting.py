@@ -251,7 +251,8 @@ def _inside_convex(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
 
 def _clip(polygon: np.ndarray, convex: np.ndarray) -> np.ndarray:
     """``polygon`` (2-D corners) clipped to the ``convex`` polygon (Sutherland-Hodgman)."""
-    orientation = np.sign(np.cross(convex[1] - convex[0], convex[2] - convex[1])) or 1.0
+    first, second = convex[1] - convex[0], convex[2] - convex[1]
+    orientation = np.sign(first[0] * second[1] - first[1] * second[0]) or 1.0  # 2-D cross product
     out = polygon
     for a, b in zip(convex, np.roll(convex, -1, axis=0)):
         if len(out) == 0:
