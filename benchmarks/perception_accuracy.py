@@ -61,7 +61,9 @@ TRAIN_DATA = "data/chair_l3 data/table_l3 data/cabinet_l3 data/chair_mixed data/
 def train_command(kind: str) -> str:
     if kind == "ours":
         return (f"python -m perception.train --config compact --data {TRAIN_DATA} --out runs/compact && "
-                f"cp runs/compact/model.pt perception/weights/compact.pt")
+                f"python -m perception.train --config compact_finetune --init runs/compact/model.pt "
+                f"--data {TRAIN_DATA} --out runs/compact_ft && "
+                f"cp runs/compact_ft/model.pt perception/weights/compact.pt")
     return f"python -m perception.train --config compact --model {kind} --data {TRAIN_DATA} --out runs/{kind}"
 
 
@@ -120,11 +122,12 @@ def evaluate_cached(out: Path, kind: str, checkpoint: Path, label: str, folder: 
 def standalone_inference(checkpoint: Path, assembly_folder: Path) -> dict:
     """Seconds of the first and of warm ``predict`` calls and the peak memory of a fresh process doing only that."""
     code = f"""
-import json, resource, time
+import json, time
 import numpy as np
 t0 = time.perf_counter()
 from cell.render import render_assembly
 
+from perception.evaluate_assemblies import peak_memory_mb
 from perception.predict import predict
 from planning.assembly import read_assembly
 assembly = read_assembly({str(assembly_folder)!r})
@@ -135,7 +138,7 @@ warm = []
 for _ in range(5):
     s = time.perf_counter(); predict(image, meshes, {str(checkpoint)!r}); warm.append(time.perf_counter() - s)
 print(json.dumps({{"import_s": t1 - t0, "first_call_s": t2 - t1, "warm_median_s": float(np.median(warm)),
-                  "parts": len(meshes), "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}}))
+                  "parts": len(meshes), "peak_rss_mb": peak_memory_mb()}}))
 """
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return json.loads(result.stdout.strip().splitlines()[-1])

@@ -7,7 +7,9 @@ mixed); it is package data and is reproduced by::
     ... (table, cabinet; levels 3 and mixed: see the README)
     python -m perception.train --config compact --data data/chair_l3 data/table_l3 data/cabinet_l3 \
         data/chair_mixed data/table_mixed data/cabinet_mixed --out runs/compact
-    cp runs/compact/model.pt perception/weights/compact.pt
+    python -m perception.train --config compact_finetune --init runs/compact/model.pt --data data/chair_l3 \
+        data/table_l3 data/cabinet_l3 data/chair_mixed data/table_mixed data/cabinet_mixed --out runs/compact_ft
+    cp runs/compact_ft/model.pt perception/weights/compact.pt
 """
 
 from __future__ import annotations
@@ -24,8 +26,9 @@ from perception.config import Config
 WEIGHTS_DIR = Path(__file__).parent / "weights"
 BUNDLED_WEIGHTS = WEIGHTS_DIR / "compact.pt"
 TRAIN_COMMAND = ("python -m perception.train --config compact --data data/chair_l3 data/table_l3 data/cabinet_l3 "
-                 "data/chair_mixed data/table_mixed data/cabinet_mixed --out runs/compact, then copy "
-                 "runs/compact/model.pt to that path or pass it as the checkpoint")
+                 "data/chair_mixed data/table_mixed data/cabinet_mixed --out runs/compact, then the same with "
+                 "--config compact_finetune --init runs/compact/model.pt --out runs/compact_ft, and copy "
+                 "runs/compact_ft/model.pt to that path or pass it as the checkpoint (see the README)")
 
 
 class MissingWeightsError(FileNotFoundError):
