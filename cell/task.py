@@ -268,10 +268,10 @@ class _Validity:
 
 def _approach_to_pick(world: CellWorld, task: PartTask, q: np.ndarray):
     """(grasp configuration, straight approach path ending there, the validity they were checked with) for
-    ``task``'s pick: the arm kept
-    :data:`TRANSIT_CLEARANCE_M` from the neighbouring kitting parts where it can be (a link passing a neighbour
-    board 0.1 mm off in this model touches it in the simulator), else as close as the exact check allows. The part
-    and its pedestal are not checked: the grasp planner checked the hand against them."""
+    ``task``'s pick. The arm keeps :data:`TRANSIT_CLEARANCE_M` from the neighbouring kitting parts where it can (a
+    link passing a neighbour board 0.1 mm off in this model touches it in the simulator), else it comes as close
+    as the exact check allows. The part and its pedestal are not checked: the grasp planner checked the hand
+    against them."""
     name, ignore = task.part, frozenset({task.part, task.pedestal})
     tcp_pick = task.world_from_pick @ task.grasp.part_from_tcp
     back = -tcp_pick.rotation[:, 2] * APPROACH_M
