@@ -370,29 +370,13 @@ def first_over_limits(timed: TimedPath, lower: np.ndarray, upper: np.ndarray) ->
     return None
 
 
-def _with_position_limits(is_valid, first_invalid, waypoints: np.ndarray, position_limits):
-    """The validity checks of :func:`time_path` extended by the joints' position limits (batch form)."""
-    lower, upper = (np.asarray(b, dtype=np.float64) for b in position_limits)
+def _check_within(waypoints: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> None:
+    """Raise ValueError naming the first waypoint and joint outside [lower, upper] (rad)."""
     outside = (waypoints < lower - 1e-12) | (waypoints > upper + 1e-12)
     if outside.any():
         k, j = np.argwhere(outside)[0]
         raise ValueError(f"waypoint {k} has joint {j + 1} at {waypoints[k, j]:.4f} rad, outside its limits "
                          f"{lower[j]:.4f} .. {upper[j]:.4f}")
-
-    def batch(qs: np.ndarray) -> int | None:
-        outside = np.flatnonzero(~np.all((qs >= lower) & (qs <= upper), axis=1))
-        count = int(outside[0]) if len(outside) else len(qs)  # the samples before the first one outside
-        if first_invalid is not None:
-            index = first_invalid(qs[:count]) if count else None
-        elif is_valid is not None:
-            index = next((i for i in range(count) if not is_valid(qs[i])), None)
-        else:
-            index = None
-        if index is not None:
-            return int(index)
-        return count if count < len(qs) else None
-
-    return None, batch
 
 
 def time_path(waypoints: Sequence[np.ndarray], limits: JointLimits,
@@ -414,16 +398,17 @@ def time_path(waypoints: Sequence[np.ndarray], limits: JointLimits,
     bounds = None
     if position_limits is not None:
         bounds = tuple(np.asarray(b, dtype=np.float64) for b in position_limits)
-        is_valid, first_invalid = _with_position_limits(is_valid, first_invalid, waypoints, bounds)
+        _check_within(waypoints, *bounds)
+    checked = is_valid is not None or first_invalid is not None
     corners = plan_corners(waypoints, limits, max_deviation_rad)
     timed = time_corners(waypoints, limits, corners)
-    if is_valid is None and first_invalid is None:
+    if not checked and bounds is None:
         return timed
 
     def find_hit(current: TimedPath) -> tuple[int, float] | None:
-        hits = [first_invalid_sample(current, is_valid, first_invalid=first_invalid)]
-        if bounds is not None:  # exactly, between the samples too
-            hits.append(first_over_limits(current, *bounds))
+        """The earliest (piece, time) that collides (sampled) or leaves the position limits (exactly)."""
+        hits = [first_invalid_sample(current, is_valid, first_invalid=first_invalid) if checked else None,
+                first_over_limits(current, *bounds) if bounds is not None else None]
         hits = [h for h in hits if h is not None]
         return min(hits, key=lambda h: h[1]) if hits else None
 
