@@ -193,9 +193,7 @@ def chocks_for(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: floa
     """Chocks (see :class:`Pedestal`; pedestal frame, the pedestal ``height_m`` tall and centred under the rest
     frame's origin) that cradle an elongated part lying in its rest pose, or None when they would not make it
     rest: the part's contact line on the support (``support_rest_xy``, rest frame x-y) must hold its centre of
-    mass along the part, and the chocks hold it across; its centre of mass must lie no higher than the part is wide
-    across (a round or square bar: half its width), since chocks a centimetre high keep a part from rolling, not a
-    tall one from tipping."""
+    mass along the part, and the chocks hold it across."""
     rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
     span = rested.max(axis=0) - rested.min(axis=0)
     along = 0 if span[0] >= span[1] else 1
@@ -204,8 +202,6 @@ def chocks_for(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: floa
         return None
     com = mesh.center_mass if mesh.is_watertight and mesh.volume > 0 else mesh.centroid
     com_rest = rest_from_part[:3, :3] @ com + rest_from_part[:3, 3]
-    if com_rest[2] - rested[:, 2].min() > span[across]:
-        return None  # chocks stop a part rolling, not a tall one tipping (a board on its edge fell over them)
     touching = _touching(mesh, rest_from_part, support_rest_xy)
     if len(touching) < 2 or not (touching[:, along].min() + SUPPORT_MARGIN_M < com_rest[along]
                                  < touching[:, along].max() - SUPPORT_MARGIN_M):
