@@ -287,11 +287,11 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
                               {n: np.asarray(steps[n].insertion_direction, dtype=np.float64) for n in order}, touches)
 
         ranked: dict[str, list[Grasp]] = {}
+        bounds = {p.name: world_bounds(p.mesh, targets[p.name]) for p in assembly.parts}
         for name in order:  # grasps clear of the hand's surroundings at the target, ranked for the target
             before = order[:order.index(name)]
-            bounds = world_bounds(assembly.part(name).mesh, targets[name])
             near = [(assembly.part(n).mesh, targets[n]) for n in before
-                    if box_distance(world_bounds(assembly.part(n).mesh, targets[n]), bounds) < NEAR_TARGET_M]
+                    if box_distance(bounds[n], bounds[name]) < NEAR_TARGET_M]
             ranked[name] = feasible_grasps(candidates[name], targets[name], near + pad_obstacles,
                                            steps[name].insertion_direction, floor_z=scene.table.top_z,
                                            gripper=clearance_gripper(HAND_CLEARANCE_M))

@@ -200,8 +200,7 @@ def chocks_for(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: floa
     across = 1 - along
     if span[along] < ELONGATED_RATIO * span[across]:
         return None
-    com = mesh.center_mass if mesh.is_watertight and mesh.volume > 0 else mesh.centroid
-    com_rest = rest_from_part[:3, :3] @ com + rest_from_part[:3, 3]
+    com_rest = rest_from_part[:3, :3] @ _centre_of_mass(mesh) + rest_from_part[:3, 3]
     touching = _touching(mesh, rest_from_part, support_rest_xy)
     if len(touching) < 2 or not (touching[:, along].min() + SUPPORT_MARGIN_M < com_rest[along]
                                  < touching[:, along].max() - SUPPORT_MARGIN_M):
@@ -224,6 +223,11 @@ def chocks_for(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: floa
             size[along], size[across], size[2] = hi - lo, CHOCK_WIDTH_M, height_m + rise
             chocks.append((tuple(float(v) for v in size), Pose(centre, [1.0, 0.0, 0.0, 0.0])))
     return tuple(chocks)
+
+
+def _centre_of_mass(mesh: trimesh.Trimesh) -> np.ndarray:
+    """The part's centre of mass (part frame): of its volume when closed, else its surface centroid."""
+    return mesh.center_mass if mesh.is_watertight and mesh.volume > 0 else mesh.centroid
 
 
 def _section_below(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, axis: int, at: float,
@@ -301,8 +305,7 @@ def rests_stably(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, support_rest
         hull = touching[ConvexHull(touching).vertices]
     except QhullError:  # collinear: a knife edge
         return False
-    com = mesh.center_mass if mesh.is_watertight and mesh.volume > 0 else mesh.centroid
-    com_rest = rest_from_part[:3, :3] @ com + rest_from_part[:3, 3]
+    com_rest = rest_from_part[:3, :3] @ _centre_of_mass(mesh) + rest_from_part[:3, 3]
     # a tall part needs a wider base: it must survive a tilt of TIP_ANGLE_DEG (bumps, the arm passing by)
     margin_m = max(margin_m, float(com_rest[2]) * np.tan(np.radians(TIP_ANGLE_DEG)))
     probes = com_rest[:2] + margin_m * np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]])
