@@ -178,9 +178,11 @@ class _KitReach(Reach):
             self.at_target_cache[key] = None if found is None else tuple(found)
         return self.at_target_cache[key]
 
-    def at_pick(self, part, grasp, world_from_part, obstacles):
+    def at_pick(self, part, grasp, world_from_part, obstacles, support=()):
         target = self.at_target(part, grasp)
-        if target is None:
+        # at the target too, the arm must clear what lies in the kitting area then (pedestals, later parts, and
+        # what the part lay on)
+        if target is None or not self.still_clear((target, (), grasp.opening_m), list(obstacles) + list(support)):
             return None
         tcp = world_from_part @ grasp.part_from_tcp
         pre = Pose(tcp.position - tcp.rotation[:, 2] * APPROACH_M, tcp.quat_wxyz)
@@ -195,6 +197,8 @@ class _KitReach(Reach):
         return None if found is None else (tuple(found), target, grasp.opening_m)
 
     def still_clear(self, reach, obstacles) -> bool:
+        """Whether the arm configurations of ``reach`` (at the pick and at the target) touch neither the table nor
+        ``obstacles`` (kitting parts and pedestals)."""
         self.checker.set_obstacles(self._world(list(obstacles), []))
         self.checker.hold(None, opening_m=reach[2])
         return all(self.checker.is_valid(q) for q in reach[0] + reach[1])

@@ -178,7 +178,7 @@ class CellWorld:
                 continue
             if valid(q):
                 return q
-            collided = collided or self._collision_words(q)
+            collided = collided or self._collision_words(q, valid)
         if collided:
             raise TaskPlanningError("goal_in_collision", part, stage,
                                     f"every inverse-kinematics solution for the TCP at {world_from_tcp} collides "
@@ -206,7 +206,7 @@ class CellWorld:
             if not straight_line_valid(valid, path[-1], q):
                 raise TaskPlanningError("straight_line_blocked", part, stage,
                                         f"the straight {distance * 100:.0f} cm segment collides "
-                                        f"({self._collision_words(q)})")
+                                        f"({self._collision_words(q, valid)})")
             path.append(q)
         return np.array(path)
 
@@ -228,8 +228,12 @@ class CellWorld:
         norm = float(np.linalg.norm(away))
         return away / norm * SLIDE_CLEARANCE_M if norm > 1e-9 else np.zeros(3)
 
-    def _collision_words(self, q: np.ndarray) -> str:
-        hit = self.checker.first_collision(q)
+    def _collision_words(self, q: np.ndarray, valid=None) -> str:
+        """The first collision at ``q`` as ``valid`` (a :class:`_Validity`) sees it: its checker, skipping what it
+        ignores; the exact world when ``valid`` is something else."""
+        checker, ignore = ((valid.checker, valid.ignore) if isinstance(valid, _Validity)
+                           else (self.checker, frozenset()))
+        hit = checker.first_collision(np.asarray(q, dtype=np.float64), ignore=ignore)
         return "no collision at its end" if hit is None else str(hit)
 
     def transit(self, start_q: np.ndarray, goal_q: np.ndarray, valid, part: str, stage: str) -> np.ndarray:
@@ -395,7 +399,7 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
                 valid = world.validity()
             if not valid(insertion[0]):
                 raise TaskPlanningError("goal_in_collision", name, "move to the target", "the pre-place "
-                                        f"configuration collides ({world._collision_words(insertion[0])})")
+                                        f"configuration collides ({world._collision_words(insertion[0], valid)})")
         carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
         add_motion(name, "move to the target", carry, valid, name, carrying)
         world.hold(name, grasp, grasp.width_m)

@@ -114,14 +114,17 @@ class KittingSlot:
 class Reach:
     """The robot's side of kitting (the planner stays free of robot models): override both methods.
 
-    ``at_pick(part, grasp, world_from_part, obstacles)``: something truthy (e.g. the arm configurations that
-    reach the grasp) when the robot reaches the grasp without touching ``obstacles`` (mesh, world pose) pairs,
-    else None. ``still_clear(reach, obstacles)``: whether those configurations still touch nothing when
-    ``obstacles`` are added next to the part.
+    ``at_pick(part, grasp, world_from_part, obstacles, support)``: something truthy (e.g. the arm configurations
+    that reach the grasp) when the robot reaches the grasp without touching ``obstacles`` (mesh, world pose) pairs,
+    and places the part at its target without touching them or ``support`` (what the part lies on: its pedestal,
+    or the board under it and that board's pedestal; the grasp planner checked the hand against them at the
+    pick, and they stay in the kitting area), else None. ``still_clear(reach, obstacles)``: whether those
+    configurations still touch nothing when ``obstacles`` are added next to the part.
     """
 
     def at_pick(self, part: str, grasp: Grasp, world_from_part: Pose,
-                obstacles: list[tuple[trimesh.Trimesh, Pose]]) -> object | None:
+                obstacles: list[tuple[trimesh.Trimesh, Pose]],
+                support: list[tuple[trimesh.Trimesh, Pose]] = ()) -> object | None:
         return True
 
     def still_clear(self, reach: object, obstacles: list[tuple[trimesh.Trimesh, Pose]]) -> bool:
@@ -601,6 +604,7 @@ class _Layout:
         # the support (own pedestal, or the board under it) is left out: the grasp check covered the hand
         present = [o for slot in self.slots if base is None or slot.part != base.part
                    for o in self._bodies(slot, name)]
+        support = own + ([] if base is None else self._bodies(base, name))
 
         def level(grasp: Grasp) -> bool:  # the fingers close across gravity: neither tip drops onto the support
             return _finger_tilt(world_from_part.rotation, grasp) <= LEVEL_FINGERS
@@ -617,7 +621,7 @@ class _Layout:
                 if key not in self.usable_at_target:
                     self.usable_at_target[key] = bool(grasp_ok_at_target(name, grasp))
                 if self.usable_at_target[key]:
-                    reached = self.reach.at_pick(name, grasp, world_from_part, present)
+                    reached = self.reach.at_pick(name, grasp, world_from_part, present, support)
                     if reached is not None:
                         yield grasp, reached
 

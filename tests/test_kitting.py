@@ -153,3 +153,36 @@ def test_closing_fingertips_are_checked_against_the_pedestal():
     open_only = feasible_grasps([grasp], world_from_bar, pedestal(0.02), None, floor_z=0.0, gripper=HAND)
     assert len(open_only) == 1  # the opened hand alone does not show it
     assert len(clear_at_pick([grasp], world_from_bar, pedestal(0.008), 0.0, HAND)) == 1
+
+
+class _ArmSweepsTheRight:
+    """A robot whose arm, placing any part at its target, sweeps the ring's right-hand side (y < -0.3): whatever
+    lies there in the kitting area then (other parts, pedestals, the part's own support) is hit."""
+
+    def __init__(self):
+        self.calls = 0
+
+    @staticmethod
+    def _behind(bodies):
+        return any(pose.apply(mesh.vertices)[:, 1].min() < -0.3 for mesh, pose in bodies)
+
+    def at_pick(self, part, grasp, world_from_part, obstacles, support=()):
+        self.calls += 1
+        return None if self._behind(list(obstacles) + list(support)) else (part,)
+
+    def still_clear(self, reach, obstacles):
+        return not self._behind(obstacles)
+
+
+def test_the_arm_at_the_target_is_checked_against_the_parts_own_support():
+    assembly = read_assembly(sample_folder("chair"))
+    checker = GraspChecker(assembly)
+    reach = _ArmSweepsTheRight()
+    slots = plan_kitting(assembly.part_names, [p.mesh for p in assembly.parts], checker.candidates,
+                         lambda name, grasp: True, AREA, reach=reach)
+    assert reach.calls >= len(slots)
+    for slot in slots:  # pedestals included: the part's own is still there when the arm places the part
+        if slot.pedestal is not None:
+            assert slot.pedestal.world_from_pedestal.apply(slot.pedestal.mesh().vertices)[:, 1].min() >= -0.3
+        mesh = assembly.part(slot.part).mesh
+        assert slot.world_from_part.apply(mesh.vertices)[:, 1].min() >= -0.3
