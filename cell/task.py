@@ -162,7 +162,7 @@ class CellWorld:
         """A collision-free IK solution: ``hint_q`` if it is one, else the one nearest ``seed_q`` first."""
         if hint_q is not None and valid(hint_q):
             reached, angle = self.panda.forward_tcp(hint_q).distance(world_from_tcp)
-            if reached < 1e-3 and angle < 1e-2:
+            if reached <= self.ik_settings.position_tolerance_m and angle <= self.ik_settings.angle_tolerance_rad:
                 return np.asarray(hint_q, dtype=np.float64)
         last_error = "no solution"
         collided = None
