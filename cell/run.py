@@ -136,6 +136,8 @@ def _run(args: argparse.Namespace, console: Console) -> int:
         exit_code = failure.exit_code
         print(f"{'planning' if exit_code == EXIT_PLANNING else 'simulation check'} failed at {failure.stage}"
               f"{' (part ' + repr(failure.part) + ')' if failure.part else ''}: {failure}", file=sys.stderr)
+        if given is None:
+            print(PERCEPTION_HINT, file=sys.stderr)
     report["exit_code"] = exit_code
     report["success"] = exit_code == EXIT_OK
     _write_outputs(out, pipeline, report, console)
@@ -145,6 +147,11 @@ def _run(args: argparse.Namespace, console: Console) -> int:
     verdict = {EXIT_OK: "success", EXIT_PLANNING: "planning failed", EXIT_SIMULATION: "simulation check failed"}
     print(f"{verdict[exit_code]}: {out}/ ({', '.join(sorted(p.name for p in out.iterdir()))})")
     return exit_code
+
+
+PERCEPTION_HINT = ("note: the targets came from the picture, and the bundled compact model often misplaces parts "
+                   "(Part Accuracy per category in benchmarks/RESULTS.md); compare the input and the predicted "
+                   "assembly in overview.png, and give known poses with --poses ASSEMBLY_JSON to check the cell alone")
 
 
 def _write_outputs(out: Path, pipeline, report: dict, console: Console) -> None:

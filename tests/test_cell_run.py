@@ -216,7 +216,7 @@ def test_neither_image_nor_poses_is_a_usage_error(small_chair, capsys):
     assert "give --image" in capsys.readouterr().err
 
 
-def test_full_run_from_the_picture(small_chair, tiny_checkpoint, tmp_path):
+def test_full_run_from_the_picture(small_chair, tiny_checkpoint, tmp_path, capsys):
     """Perception feeds the planner: the poses come from the network (a barely trained one here, so the plan
     may fail; what is checked is that every stage runs and reports, and nothing is half-written)."""
     from cell.render import render_assembly
@@ -240,5 +240,7 @@ def test_full_run_from_the_picture(small_chair, tiny_checkpoint, tmp_path):
     if code == 3:
         assert report["failure"]["stage"] in ("sequence", "kitting", "motion", "timing")
         assert not (out / "trajectory.csv").exists()
+    if code != 0:  # a failure after perception points at the prediction and at --poses
+        assert "targets came from the picture" in capsys.readouterr().err
     width, height = Image.open(out / "overview.png").size  # input image | target | simulated result (if any)
     assert width == (2 if code == 3 else 3) * height
