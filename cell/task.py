@@ -7,7 +7,8 @@ For every part, in assembly order, the robot
 3. closes the gripper on the part,
 4. lifts it straight up (:data:`LIFT_M`),
 5. moves (OMPL, holding the part) to the pre-place pose, :data:`INSERTION_M` back along the insertion direction,
-6. inserts it in a straight line along the insertion direction into its target,
+6. inserts it in a straight line along the insertion direction into its target (where it slides along a
+   neighbour: held off it, then sideways into contact; see :func:`_insertion`),
 7. opens the gripper, retreats in a straight line back along the approach axis, and opens to the next grasp.
 
 Finally it returns home. Straight segments are solved by inverse kinematics every :data:`CARTESIAN_STEP_M`
@@ -27,6 +28,7 @@ Failures raise :class:`TaskPlanningError`, naming the part, the stage and the ki
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -54,7 +56,9 @@ JOINT_LIMIT_MARGIN_RAD = 0.01  # configurations keep this from the joint limits 
 CARRY_CLEARANCE_M = 0.002  # the carried part is grown by this much on its way to the target ...
 TRANSIT_CLEARANCE_M = 0.003  # ... and free-space moves keep this from every obstacle
 NEAR_END_RAD = 0.15  # ... except this close (joint-space distance) to an end that lies closer than that
-SLIDE_CLEARANCE_M = 0.004  # a part inserted along a neighbour's face starts this far off it
+SLIDE_CLEARANCE_M = 0.004  # a part inserted along a neighbour's face comes down this far off it
+SLIDE_SAMPLES = 5  # poses along the insertion where the neighbours it slides along are looked for
+SIDE_NORMAL_MAX_COS = 0.3  # a contact normal this close to perpendicular to the insertion is a neighbour's side
 LIMIT_FRACTION = 0.9  # motions are planned at this fraction of the published limits: headroom for tracking
 PANDA_LIMITS = JointLimits(LIMIT_FRACTION * VELOCITY_LIMITS, LIMIT_FRACTION * ACCELERATION_LIMITS,
                            LIMIT_FRACTION * JERK_LIMITS)
@@ -211,22 +215,35 @@ class CellWorld:
         return np.array(path)
 
     def clearance_shift(self, part: str, task: PartTask) -> np.ndarray:
-        """Where the part slides along a neighbour into its target (it touches the neighbour already
-        :data:`INSERTION_M` back along the insertion direction), a sideways offset (m, world) of the pre-place
-        pose away from that neighbour by :data:`SLIDE_CLEARANCE_M`: the part then comes into contact only at
-        the end of its straight insertion, not during the carry."""
-        pre = Pose(task.world_from_target.position - task.insertion_direction * INSERTION_M,
-                   task.world_from_target.quat_wxyz)
-        away = np.zeros(3)
-        for other, pose in self.part_poses.items():
-            if other == part:
-                continue
-            result = signed_distance(self.parts[other], pose, self.parts[part], pre, cutoff_m=SLIDE_CLEARANCE_M)
-            if result.measured and result.distance_m < SLIDE_CLEARANCE_M and result.normal_ab is not None:
-                away += result.normal_ab
-        away -= np.dot(away, task.insertion_direction) * task.insertion_direction
+        """Where the part slides along a placed neighbour's side on its way into the target, a sideways offset (m,
+        world) of :data:`SLIDE_CLEARANCE_M` away from that neighbour: the part comes down held off it and moves
+        into contact only at the end of its insertion (:func:`_insertion`), as a guarded move would. A neighbour
+        counts when the part passes within :data:`SLIDE_CLEARANCE_M` of it anywhere along the insertion (checked
+        at :data:`SLIDE_SAMPLES` poses from the pre-place pose to the target) with a contact normal within
+        :data:`SIDE_NORMAL_MAX_COS` of perpendicular to the insertion (what the part lands on does not count).
+        Sliding down a neighbour's face 0.25 mm off it, the simulated part caught on its edge and twisted in the
+        hand by 18-65 degrees (chairs' side stretchers against the middle stretcher they butt onto). Neighbours on
+        opposite sides (a slot) cancel: the part then comes straight down the middle."""
+        direction = task.insertion_direction
+        away, seen = np.zeros(3), set()
+        for fraction in np.linspace(1.0, 0.0, SLIDE_SAMPLES):
+            pose = Pose(task.world_from_target.position - direction * INSERTION_M * fraction,
+                        task.world_from_target.quat_wxyz)
+            for other, other_pose in self.part_poses.items():
+                if other == part or other in seen:
+                    continue
+                result = signed_distance(self.parts[other], other_pose, self.parts[part], pose,
+                                         cutoff_m=SLIDE_CLEARANCE_M)
+                if not (result.measured and result.distance_m < SLIDE_CLEARANCE_M and result.normal_ab is not None):
+                    continue
+                normal = np.asarray(result.normal_ab, dtype=np.float64)
+                if abs(float(normal @ direction)) > SIDE_NORMAL_MAX_COS:
+                    continue
+                seen.add(other)
+                sideways = normal - float(normal @ direction) * direction
+                away += sideways / np.linalg.norm(sideways)
         norm = float(np.linalg.norm(away))
-        return away / norm * SLIDE_CLEARANCE_M if norm > 1e-9 else np.zeros(3)
+        return away / norm * SLIDE_CLEARANCE_M if norm > 1e-6 else np.zeros(3)
 
     def _collision_words(self, q: np.ndarray, valid=None) -> str:
         """The first collision at ``q`` as ``valid`` (a :class:`_Validity`) sees it: its checker, skipping what it
@@ -318,25 +335,27 @@ def _free_space_validity(world: CellWorld, start_q: np.ndarray, goal_q: np.ndarr
 
 
 def _timed(world: CellWorld, path: np.ndarray, valid, part: str, stage: str,
-           limits: JointLimits = PANDA_LIMITS):
-    """Time a joint path with Ruckig within ``limits`` and the joints' position limits (adds the seconds spent to
-    ``world.timing_seconds``)."""
+           limits: JointLimits = PANDA_LIMITS, stops: Sequence[int] = ()):
+    """Time a joint path with Ruckig within ``limits`` and the joints' position limits, at rest at the waypoints
+    indexed by ``stops`` (adds the seconds spent to ``world.timing_seconds``)."""
     started = time.perf_counter()
-    path = _drop_repeats(path)
+    kept = _kept(path)
+    path = np.asarray(path)[kept]
+    stops = [kept.index(k) for k in stops if k in kept and 0 < kept.index(k) < len(kept) - 1]
     if len(path) < 2:
         path = np.stack([path[0], path[0] + 1e-9])
     try:
         return time_path(path, limits, is_valid=valid,
-                         position_limits=(world.panda.lower_limits, world.panda.upper_limits))
+                         position_limits=(world.panda.lower_limits, world.panda.upper_limits), stops=stops)
     except ValueError as exc:
         raise TaskPlanningError("straight_line_blocked", part, stage, str(exc)) from exc
     finally:
         world.timing_seconds += time.perf_counter() - started
 
 
-def _drop_repeats(path: np.ndarray) -> np.ndarray:
-    keep = [0] + [k for k in range(1, len(path)) if np.max(np.abs(path[k] - path[k - 1])) > 1e-7]
-    return np.asarray(path)[keep]
+def _kept(path: np.ndarray) -> list[int]:
+    """Indices of the waypoints of ``path`` that differ from the one before (repeats dropped)."""
+    return [0] + [k for k in range(1, len(path)) if np.max(np.abs(path[k] - path[k - 1])) > 1e-7]
 
 
 def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
@@ -353,8 +372,9 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
     q = np.asarray(home_q, dtype=np.float64)
 
     def add_motion(part: str, label: str, path: np.ndarray, valid, held: str | None,
-                   limits: JointLimits = PANDA_LIMITS) -> None:
-        program.steps.append(MotionStep(f"{part}: {label}", _timed(world, path, valid, part, label, limits), held))
+                   limits: JointLimits = PANDA_LIMITS, stops: Sequence[int] = ()) -> None:
+        program.steps.append(MotionStep(f"{part}: {label}", _timed(world, path, valid, part, label, limits, stops),
+                                        held))
 
     opening = program.initial_width_m
     for index, task in enumerate(tasks):
@@ -385,8 +405,8 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         valid_insert = world.validity(ignore_at_target)
         place_q = world.solve_ik(tcp_place, lift[-1], valid_insert, name, "release at the target",
                                  hint_q=task.place_q_hint)
-        back = -task.insertion_direction * INSERTION_M + world.clearance_shift(name, task)
-        insertion = world.straight_line(place_q, tcp_place, back, valid_insert, name, "insertion")[::-1]
+        insertion, corner = _insertion(world, place_q, tcp_place, task.insertion_direction,
+                                       world.clearance_shift(name, task), valid_insert, name)
         # carry with the part grown by a margin (clear of everything by more than the simulator's contact slop),
         # or, where the pre-place pose already slides along a neighbour, pulled in like the insertion
         world.hold(name, grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
@@ -403,7 +423,7 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
         add_motion(name, "move to the target", carry, valid, name, carrying)
         world.hold(name, grasp, grasp.width_m)
-        add_motion(name, "insert", insertion, valid_insert, name, carrying)
+        add_motion(name, "insert", insertion, valid_insert, name, carrying, stops=corner)
         # --- release ---------------------------------------------------------------------------------------
         program.steps.append(GripperStep(f"{name}: open", grasp.opening_m, name))
         poses[name] = task.world_from_target
@@ -431,6 +451,27 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
     home = world.transit(q, park, free, "-", "return home")
     program.steps.append(MotionStep("return home", _timed(world, home, free, "-", "return home")))
     return plan
+
+
+def _insertion(world: CellWorld, place_q: np.ndarray, world_from_tcp_place: Pose, direction: np.ndarray,
+               shift_m: np.ndarray, valid, part: str) -> tuple[np.ndarray, tuple[int, ...]]:
+    """The insertion: joint waypoints from the pre-place configuration to ``place_q`` (release), and the indices of
+    the waypoints where the motion must stop. Without a sideways ``shift_m`` (world, m; see
+    :meth:`CellWorld.clearance_shift`) a straight line :data:`INSERTION_M` along ``direction``. With one, the part
+    comes down held off the neighbour it slides along by the shift, stops, and moves sideways into contact: on a
+    diagonal line it would meet the neighbour's face while still moving in, where friction wedges it (a cabinet's
+    side panel jammed 18 mm short of the floor that way, against the ends of the panels it closes). Where that
+    path collides or leaves the reachable space, the diagonal line."""
+    if np.linalg.norm(shift_m) > 0.0:
+        try:
+            seat = world.straight_line(place_q, world_from_tcp_place, shift_m, valid, part, "insertion")
+            held_off = Pose(world_from_tcp_place.position + shift_m, world_from_tcp_place.quat_wxyz)
+            down = world.straight_line(seat[-1], held_off, -direction * INSERTION_M, valid, part, "insertion")
+            return np.concatenate([down[::-1], seat[::-1][1:]]), (len(down) - 1,)
+        except TaskPlanningError:
+            pass
+    back = -direction * INSERTION_M + shift_m
+    return world.straight_line(place_q, world_from_tcp_place, back, valid, part, "insertion")[::-1], ()
 
 
 def _park_configuration(home_q: np.ndarray, valid) -> np.ndarray:

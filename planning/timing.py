@@ -383,7 +383,8 @@ def time_path(waypoints: Sequence[np.ndarray], limits: JointLimits,
               is_valid: Callable[[np.ndarray], bool] | None = None, max_repairs: int = 60,
               first_invalid: Callable[[np.ndarray], int | None] | None = None,
               max_deviation_rad: float = MAX_DEVIATION_RAD,
-              position_limits: tuple[np.ndarray, np.ndarray] | None = None) -> TimedPath:
+              position_limits: tuple[np.ndarray, np.ndarray] | None = None,
+              stops: Sequence[int] = ()) -> TimedPath:
     """Time a path without stopping at its waypoints (blends from :func:`plan_corners`). With ``is_valid`` (one
     configuration) or ``first_invalid`` (a batch, see :func:`first_invalid_sample`), the timed motion is re-checked
     densely; where a blend collides, that corner's blend distance is halved (and its speed chosen again), and after
@@ -391,7 +392,8 @@ def time_path(waypoints: Sequence[np.ndarray], limits: JointLimits,
 
     ``position_limits`` (lower, upper; rad): a blend that overshoots a joint's position limit (a path running along
     the limit) is treated like one that collides. The waypoints themselves must lie within the limits; the straight
-    pieces between them then do too."""
+    pieces between them then do too. ``stops``: indices of interior waypoints where the motion must come to rest
+    (a corner the path turns at to touch something, which no blend may cut)."""
     waypoints = np.asarray(waypoints, dtype=np.float64)
     if len(waypoints) < 2:
         raise ValueError("a path needs at least two waypoints")
@@ -400,7 +402,8 @@ def time_path(waypoints: Sequence[np.ndarray], limits: JointLimits,
         bounds = tuple(np.asarray(b, dtype=np.float64) for b in position_limits)
         _check_within(waypoints, *bounds)
     checked = is_valid is not None or first_invalid is not None
-    corners = plan_corners(waypoints, limits, max_deviation_rad)
+    allowed = [0.0 if k in set(stops) else np.inf for k in range(len(waypoints))]
+    corners = plan_corners(waypoints, limits, max_deviation_rad, allowed=allowed)
     timed = time_corners(waypoints, limits, corners)
     if not checked and bounds is None:
         return timed
@@ -412,7 +415,7 @@ def time_path(waypoints: Sequence[np.ndarray], limits: JointLimits,
         hits = [h for h in hits if h is not None]
         return min(hits, key=lambda h: h[1]) if hits else None
 
-    allowed = [c.distance_rad for c in corners]
+    allowed = [0.0 if a <= 0.0 else c.distance_rad for c, a in zip(corners, allowed)]
     shrunk = [0] * len(waypoints)
     for _ in range(max_repairs):
         hit = find_hit(timed)

@@ -149,3 +149,21 @@ def test_position_limits_are_found_between_samples_and_kept():
     with pytest.raises(ValueError, match="waypoint 2 has joint 5 at 2.9618"):
         time_path(ALONG_THE_LIMIT, LIMITS, is_valid=lambda q: True,
                   position_limits=(np.full(7, -3.0), np.full(7, 2.96)))
+
+
+def test_the_motion_rests_at_the_waypoints_it_must_stop_at():
+    # a gently bending path is blended everywhere (it never rests between its ends); asked to stop at waypoint 2,
+    # it comes to rest exactly there, and still blends the other corners
+    waypoints = path()
+
+    def rests(timed):
+        _, q, qd, _ = timed.sample(1000.0)
+        still = np.abs(qd).max(axis=1) < 1e-3
+        return [q[k] for k in np.flatnonzero(still[1:-1]) + 1]
+
+    assert rests(time_path(waypoints, LIMITS)) == []
+    stopped = time_path(waypoints, LIMITS, stops=[2])
+    at_rest = rests(stopped)
+    assert at_rest and all(np.linalg.norm(q - waypoints[2]) < 1e-4 for q in at_rest)
+    assert stopped.duration > time_path(waypoints, LIMITS).duration
+    assert stopped.duration < time_waypoints(waypoints, LIMITS, np.zeros_like(waypoints)).duration
