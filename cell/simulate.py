@@ -12,9 +12,10 @@ Franka's joint torque limits. A gripper step that narrows the opening closes the
 :attr:`SimSettings.finger_force_n` per finger); when it ends, the part it names is welded to the hand only if both
 fingers touch it, otherwise the grasp fails and is reported. The weld holds the part at the grasp the program
 plans (the TCP where the program closes, and the part where it starts) when the part lies within
-:attr:`SimSettings.grasp_seat_m` and ``grasp_seat_deg`` of it: the closing fingers centre and align a real part,
-while PyBullet's finger contacts settle it a fraction of a millimetre and about a degree off (they creep under the
-squeeze); farther off, it holds the part where it lies, and the error carries through to the check. While welded,
+:attr:`SimSettings.grasp_seat_m` of it, turned by at most ``grasp_seat_deg`` about the closing axis and
+``grasp_square_deg`` in all: the closing fingers centre a real part and their flat pads square it, while PyBullet's
+finger contacts settle it a fraction of a millimetre and one to three degrees off (they creep under the squeeze);
+farther off, it holds the part where it lies, and the error carries through to the check. While welded,
 the part does not collide with the robot (see :meth:`_Run._weld`). A gripper step that widens the opening releases
 the weld; the released part is then fastened (standing for connectors) to those of its ``fasten_to`` parts that lie
 within :attr:`SimSettings.fasten_distance_m` of their planned gap to it, and to the jig if ``fasten_to`` holds
@@ -62,6 +63,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 from scipy.spatial import HalfspaceIntersection
+from scipy.spatial.transform import Rotation
 
 from cell.bullet import BulletClient
 from cell.program import GripperStep, MotionStep, Program
@@ -135,7 +137,8 @@ class SimSettings:
     finger_speed_m_s: float = 0.05  # per finger
     grasp_contact_m: float = 0.0002  # a finger this close to the part (metres, as PyBullet measures) touches it
     grasp_seat_m: float = 0.003  # a grasped part this close to its planned grasp (and ...
-    grasp_seat_deg: float = 3.0  # ... turned by less than this) is seated there by the closing fingers
+    grasp_seat_deg: float = 3.0  # ... turned by less than this about the closing axis, which the pads leave free,
+    grasp_square_deg: float = 8.0  # ... and less than this in all) is seated there by the closing fingers
     fasten_distance_m: float = 0.002  # a released part this much farther from a neighbour than planned is not fastened
     contact_distance_m: float = 0.0  # contact points at this distance or closer (negative: penetration) count
     joint_limit_margin_rad: float = 1e-3  # a joint this far beyond its position limit breaks it
@@ -151,7 +154,7 @@ class SimSettings:
                      "finger_speed_m_s", "grasp_contact_m", "fasten_distance_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"SimSettings.{name} must be positive, got {getattr(self, name)}")
-        for name in ("settle_s", "grasp_seat_m", "grasp_seat_deg", "joint_clearance_m"):
+        for name in ("settle_s", "grasp_seat_m", "grasp_seat_deg", "grasp_square_deg", "joint_clearance_m"):
             if getattr(self, name) < 0:
                 raise ValueError(f"SimSettings.{name} must not be negative, got {getattr(self, name)}")
         if self.record_every_s is not None and not self.record_every_s > 0:
@@ -165,8 +168,8 @@ class PartResult:
     ``rotation_error_deg``: smallest rotation to the target over the part's symmetries (degrees).
     ``grasp_offset_m`` / ``grasp_offset_deg``: how far the part lay from its planned grasp, relative to the hand,
     when the fingers closed on it (metres at the TCP, degrees; None if never grasped); ``grasp_seated``: whether it
-    was held at the planned grasp (offset within :attr:`SimSettings.grasp_seat_m` and ``grasp_seat_deg``) rather
-    than where it lay."""
+    was held at the planned grasp (offset within :attr:`SimSettings.grasp_seat_m`, ``grasp_seat_deg`` and
+    ``grasp_square_deg``) rather than where it lay."""
 
     name: str
     world_from_final: Pose
@@ -296,6 +299,19 @@ def inset(piece: trimesh.Trimesh, distance_m: float) -> trimesh.Trimesh:
         return hull
     corners = HalfspaceIntersection(np.hstack([normals, offsets[:, None]]), centre).intersections
     return trimesh.convex.convex_hull(corners)
+
+
+def grasp_offset(tcp_from_part: Pose, planned_tcp_from_part: Pose, settings: SimSettings) -> tuple[float, float, bool]:
+    """How far a part lies from its planned grasp when the fingers have closed on it: (metres at the TCP, degrees
+    in all, whether the closing fingers seat it there). Seated: within :attr:`SimSettings.grasp_seat_m`, turned by
+    at most ``grasp_seat_deg`` about the closing axis (TCP +y, which flat pads leave free) and at most
+    ``grasp_square_deg`` in all (the pads square a turn about the other two axes)."""
+    offset_m, offset_rad = tcp_from_part.inverse().distance(planned_tcp_from_part.inverse())
+    turn_tcp = Rotation.from_matrix(tcp_from_part.rotation @ planned_tcp_from_part.rotation.T).as_rotvec()
+    offset_deg = float(np.degrees(offset_rad))
+    seated = (offset_m <= settings.grasp_seat_m and abs(float(np.degrees(turn_tcp[1]))) <= settings.grasp_seat_deg
+              and offset_deg <= settings.grasp_square_deg)
+    return float(offset_m), offset_deg, bool(seated)
 
 
 def _write_pieces_obj(pieces: Sequence[trimesh.Trimesh], path: Path) -> None:
@@ -665,8 +681,10 @@ class _Run:
 
     def _weld(self, name: str, planned_tcp_from_part: Pose | None) -> None:
         """Hold part ``name`` in the hand: at the planned grasp if it lies close to it (the closing fingers centre
-        it and their pads align it; the simulated contacts settle a fraction of a millimetre and of a degree off,
-        as they creep under the squeeze), else where it is. The weld stands for the grip from then on: the robot
+        it and their flat pads square it: a turn about the approach axis or the pads' long axis brings its faces
+        flat against the pads, a turn about the closing axis they leave; the simulated contacts settle a fraction
+        of a millimetre and one to three degrees off, mostly about the approach axis, as PyBullet's finger hulls
+        creep under the squeeze), else where it is. The weld stands for the grip from then on: the robot
         stops colliding with the part and the fingers stay where they closed. Contacts between the fingers or the
         hand and a welded part fight the weld, which then creeps by degrees over a carry; and PyBullet's Panda
         hulls carry a margin of about 1.1 mm, so the part would catch on the arm where the planner leaves it a
@@ -677,10 +695,8 @@ class _Run:
         tcp_from_part = world_from_tcp.inverse() @ cell.world_from_part(name)
         seated = False
         if planned_tcp_from_part is not None:
-            offset_m, offset_rad = tcp_from_part.inverse().distance(planned_tcp_from_part.inverse())
-            offset_deg = float(np.degrees(offset_rad))
-            seated = offset_m <= settings.grasp_seat_m and offset_deg <= settings.grasp_seat_deg
-            self.grasp_offsets[name] = (float(offset_m), offset_deg, seated)
+            offset_m, offset_deg, seated = grasp_offset(tcp_from_part, planned_tcp_from_part, settings)
+            self.grasp_offsets[name] = (offset_m, offset_deg, seated)
             if seated:  # a fixed constraint keeps the offset it starts with: put the part where the fingers seat it
                 tcp_from_part = planned_tcp_from_part
                 cell.set_part(name, world_from_tcp @ tcp_from_part)

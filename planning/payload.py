@@ -84,7 +84,7 @@ def carry_limits(limits: JointLimits, payload: MassProperties, part_from_tcp: Po
     scale = carry_scale(payload, part_from_tcp, float(np.max(limits.acceleration[list(WRIST_JOINTS)])))
     if scale >= 1.0:
         return limits
-    return JointLimits(limits.velocity * np.sqrt(scale), limits.acceleration * scale, limits.jerk * scale ** 1.5)
+    return limits.slowed(float(np.sqrt(scale)))
 
 
 __all__ = ["DEFAULT_DENSITY_KG_M3", "MassProperties", "carry_limits", "carry_scale", "mass_properties"]

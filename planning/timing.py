@@ -30,6 +30,13 @@ class JointLimits:
     acceleration: np.ndarray  # rad/s^2
     jerk: np.ndarray  # rad/s^3
 
+    def slowed(self, factor: float) -> JointLimits:
+        """The limits under which every motion timed within these is timed ``1 / factor`` times slower (velocity x
+        factor, acceleration x factor^2, jerk x factor^3); ``factor`` in (0, 1]."""
+        if not 0.0 < factor <= 1.0:
+            raise ValueError(f"a slow-down factor must lie in (0, 1], got {factor}")
+        return JointLimits(self.velocity * factor, self.acceleration * factor ** 2, self.jerk * factor ** 3)
+
 
 @dataclass
 class TimedPath:

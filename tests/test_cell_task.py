@@ -1,4 +1,5 @@
-"""The cell's task planner: how a part is brought into contact with the neighbours it slides along."""
+"""The cell's task planner: how a part is brought into contact with its neighbours (held off the ones it slides
+along, slowly)."""
 
 import numpy as np
 import pytest
@@ -6,10 +7,19 @@ import trimesh
 
 from cell.bullet import BulletClient
 from cell.robot import Panda
-from cell.task import INSERTION_M, SLIDE_CLEARANCE_M, CellWorld, PartTask
+from cell.task import (
+    INSERTION_M,
+    INSERTION_SPEED_M_S,
+    PANDA_LIMITS,
+    SLIDE_CLEARANCE_M,
+    CellWorld,
+    PartTask,
+    _insertion_limits,
+)
 from planning.collision import ConvexPart
 from planning.grasp import Grasp
 from planning.pose import Pose
+from planning.timing import time_path
 
 BAR = trimesh.creation.box((0.008, 0.19, 0.02))  # a side stretcher (x thin, y long), metres
 CROSS = trimesh.creation.box((0.18, 0.008, 0.02))  # the middle stretcher butting onto it (+x side)
@@ -55,3 +65,20 @@ def test_a_part_between_two_neighbours_or_landing_on_one_comes_straight_down(pan
     far = {"cross": (CROSS, Pose([0.5 + 0.094 + 0.01, 0.0, 0.2], [1, 0, 0, 0]))}  # 1 cm away: no slide
     assert np.all(world_with(panda, far).clearance_shift("bar", task_to(target)) == 0.0)
     assert INSERTION_M > 0.02  # the cross stretcher is met only near the end of the insertion above
+
+
+def test_insertions_are_timed_slowly_enough_for_tight_fits(panda):
+    world = world_with(panda, {})
+    down = Pose([0.5, 0.0, 0.25], [0.0, 1.0, 0.0, 0.0])  # TCP pointing down
+    q = world.solve_ik(down, np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8]), lambda q: True, "bar", "test")
+    path = world.straight_line(q, down, np.array([0.0, 0.0, INSERTION_M]), lambda q: True, "bar", "test")[::-1]
+    limits = _insertion_limits(world, path, PANDA_LIMITS)
+    assert np.all(limits.velocity < PANDA_LIMITS.velocity)
+
+    def top_speed(timed):
+        _, qs, _, _ = timed.sample(200.0)
+        tcp = np.array([panda.forward_tcp(q).position for q in qs])
+        return float(np.max(np.linalg.norm(np.diff(tcp, axis=0), axis=1)) * 200.0)
+
+    assert top_speed(time_path(path, PANDA_LIMITS)) > 4 * INSERTION_SPEED_M_S  # what it would be at full speed
+    assert 0.7 * INSERTION_SPEED_M_S < top_speed(time_path(path, limits)) <= 1.05 * INSERTION_SPEED_M_S

@@ -17,7 +17,17 @@ from PIL import Image
 from cell.bullet import BulletClient
 from cell.program import GripperStep, MotionStep, Program
 from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS, Panda
-from cell.simulate import FIXTURE, SimPart, SimSettings, StaticBody, inset, render_final, simulate_program, write_gif
+from cell.simulate import (
+    FIXTURE,
+    SimPart,
+    SimSettings,
+    StaticBody,
+    grasp_offset,
+    inset,
+    render_final,
+    simulate_program,
+    write_gif,
+)
 from cell.symmetry import part_symmetry, position_error_m, rotation_error_deg
 from planning.pose import Pose
 from planning.timing import JointLimits, time_path
@@ -314,3 +324,22 @@ def test_bad_inputs_are_named(stack_program):
         simulate_program(stack_program, [replace(PARTS[1], fasten_to=())], STATIC, BASE)
     with pytest.raises(ValueError, match=r"part 'b': fasten_to names \['seat'\]"):
         simulate_program(stack_program, [PARTS[0], replace(PARTS[1], fasten_to=("seat",))], STATIC, BASE)
+
+
+@pytest.mark.parametrize(("turn_axis_tcp", "turn_deg", "shift_m", "seated"), [
+    ((0, 0, 1), 5.0, 0.0, True),  # about the approach axis: the flat pads square it
+    ((1, 0, 0), 5.0, 0.0, True),  # about the pads' long axis: squared too
+    ((0, 1, 0), 5.0, 0.0, False),  # about the closing axis: the pads leave it turned
+    ((0, 1, 0), 2.0, 0.002, True),
+    ((0, 0, 1), 10.0, 0.0, False),  # more than the pads square
+    ((0, 0, 1), 1.0, 0.004, False),  # too far off
+])
+def test_closing_fingers_seat_a_part_turned_about_any_axis_but_the_closing_one(turn_axis_tcp, turn_deg, shift_m,
+                                                                            seated):
+    planned = Pose([0.01, -0.02, 0.03], [0.9, 0.1, -0.3, 0.2] / np.linalg.norm([0.9, 0.1, -0.3, 0.2]))
+    axis = np.asarray(turn_axis_tcp, dtype=np.float64)
+    half = np.radians(turn_deg) / 2
+    turn = Pose([0.0, shift_m, 0.0], [np.cos(half), *(np.sin(half) * axis)])  # in the TCP frame
+    offset_m, offset_deg, got = grasp_offset(turn @ planned, planned, SimSettings())
+    assert got is seated
+    assert offset_deg == pytest.approx(turn_deg, abs=1e-6)
