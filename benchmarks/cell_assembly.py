@@ -8,6 +8,8 @@ level-3 objects ``default_rng([2000, i])`` (seeds never used for training). A re
 the cell (kitting area or reach) is scaled down by 0.8 and then 0.6 and run again; the scale used is reported.
 Prints a Markdown table (success rate, median errors, plan and simulation times) and names every failure with
 its stage and reason. Targets (issue 5): 100% procedural, >= 90% real, final errors <= 5 mm and <= 3 degrees.
+``--keep DIR`` keeps every object's output folder (``DIR/<object>_out``: report, overview, program) for diagnosis;
+``--only 3 8`` runs just those procedural objects.
 """
 
 from __future__ import annotations
@@ -46,9 +48,9 @@ def scaled(assembly: Assembly, factor: float) -> Assembly:
     return Assembly(assembly.name, parts, dict(assembly.metadata))
 
 
-def run_one(assembly: Assembly, work: Path) -> dict:
+def run_one(assembly: Assembly, work: Path, keep: Path | None = None) -> dict:
     folder = write_assembly(assembly, work / assembly.name, overwrite=True)
-    out = work / f"{assembly.name}_out"
+    out = (keep or work) / f"{assembly.name}_out"
     started = time.perf_counter()
     result = subprocess.run([sys.executable, "-m", "cell.run", "--parts", str(folder / "parts"), "--poses",
                              str(folder / "assembly.json"), "--out", str(out), "--no-animation", "--quiet"],
@@ -74,9 +76,9 @@ def run_one(assembly: Assembly, work: Path) -> dict:
     return record
 
 
-def run_scaled(assembly: Assembly, work: Path) -> dict:
+def run_scaled(assembly: Assembly, work: Path, keep: Path | None = None) -> dict:
     for factor in SCALES:
-        record = run_one(scaled(assembly, factor) if factor != 1.0 else assembly, work)
+        record = run_one(scaled(assembly, factor) if factor != 1.0 else assembly, work, keep)
         record["scale"] = factor
         message = (record.get("failure") or {}).get("message", "")
         if not any(words in message for words in TOO_BIG):
@@ -105,6 +107,9 @@ def main() -> int:
     parser.add_argument("--categories", nargs="+", default=["chair", "table", "cabinet"])
     parser.add_argument("--furniture", type=Path, help="folder of real assembly folders")
     parser.add_argument("--json", type=Path, help="write every record here")
+    parser.add_argument("--keep", type=Path, help="keep each object's output folder (report.json, overview.png, "
+                        "...) under this folder, for diagnosis")
+    parser.add_argument("--only", type=int, nargs="+", help="procedural object indices to run (default: all)")
     args = parser.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}", flush=True)
     rows, everything = [], {}
@@ -112,9 +117,9 @@ def main() -> int:
         work = Path(tmp)
         for category in args.categories if args.procedural else []:
             records = []
-            for i in range(args.procedural):
+            for i in args.only or range(args.procedural):
                 assembly = generate(category, "3", np.random.default_rng([2000, i]), f"{category}_{i}")
-                records.append(run_one(assembly, work))
+                records.append(run_one(assembly, work, args.keep))
                 r = records[-1]
                 print(f"{category} {i}: exit {r['exit_code']} {r['wall_s']:.0f} s "
                       f"{(r.get('failure') or {}).get('message', '')[:160]}", flush=True)
@@ -123,7 +128,7 @@ def main() -> int:
         if args.furniture:
             records = []
             for folder in sorted(p for p in args.furniture.iterdir() if (p / "assembly.json").is_file()):
-                records.append(run_scaled(read_assembly(folder), work))
+                records.append(run_scaled(read_assembly(folder), work, args.keep))
                 r = records[-1]
                 print(f"{folder.name}: exit {r['exit_code']} scale {r['scale']} {r['wall_s']:.0f} s "
                       f"{(r.get('failure') or {}).get('message', '')[:160]}", flush=True)
