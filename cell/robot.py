@@ -67,6 +67,13 @@ class Panda:
         infos = [self.pb.getJointInfo(self.body, j, physicsClientId=self.cid) for j in self.arm]
         self.lower_limits = np.array([i[8] for i in infos])
         self.upper_limits = np.array([i[9] for i in infos])
+        self._movable = [j for j in range(self.pb.getNumJoints(self.body, physicsClientId=self.cid))
+                         if self.pb.getJointInfo(self.body, j, physicsClientId=self.cid)[2] != self.pb.JOINT_FIXED]
+        self._arm_columns = [self._movable.index(j) for j in self.arm]
+        # the TCP link's frame origin in its centre-of-mass frame, where calculateJacobian takes its point
+        _, _, com_position, com_orientation, _, _ = self.pb.getLinkState(self.body, self.tcp_link,
+                                                                         physicsClientId=self.cid)
+        self._tcp_in_com = Pose.from_pybullet(com_position, com_orientation).inverse().position
 
     # --- state ----------------------------------------------------------------------------------------------
     def set_arm(self, q: np.ndarray) -> None:
@@ -100,13 +107,22 @@ class Panda:
                                      physicsClientId=self.cid)
         return Pose.from_pybullet(state[4], state[5])
 
+    def tcp_jacobian(self, q: np.ndarray) -> np.ndarray:
+        """(6, 7): the TCP's linear (m/rad) and angular (rad/rad) velocity in the world frame per arm joint's rate at
+        ``q`` (PyBullet's analytic Jacobian; sets the arm)."""
+        self.set_arm(q)
+        positions = [s[0] for s in self.pb.getJointStates(self.body, self._movable, physicsClientId=self.cid)]
+        zeros = [0.0] * len(positions)
+        linear, angular = self.pb.calculateJacobian(self.body, self.tcp_link, self._tcp_in_com.tolist(), positions,
+                                                    zeros, zeros, physicsClientId=self.cid)
+        return np.vstack([np.asarray(linear)[:, self._arm_columns], np.asarray(angular)[:, self._arm_columns]])
+
     def polish_tcp(self, q: np.ndarray, world_from_tcp: Pose, steps: int = 6, tolerance_m: float = 2e-6,
                    tolerance_rad: float = 2e-5) -> np.ndarray:
-        """``q`` (near a solution) moved by Gauss-Newton steps on the TCP's position and rotation error (a
-        finite-difference Jacobian, damped, within the joint limits) until within ``tolerance_m`` and
-        ``tolerance_rad`` or ``steps`` are done."""
+        """``q`` (near a solution) moved by Gauss-Newton steps on the TCP's position and rotation error (the
+        analytic Jacobian, damped, within the joint limits) until within ``tolerance_m`` and ``tolerance_rad`` or
+        ``steps`` are done."""
         q = np.asarray(q, dtype=np.float64).copy()
-        eps = 1e-6
 
         def error(at: np.ndarray) -> np.ndarray:
             reached = self.forward_tcp(at)
@@ -117,11 +133,7 @@ class Panda:
             e = error(q)
             if np.linalg.norm(e[:3]) <= tolerance_m and np.linalg.norm(e[3:]) <= tolerance_rad:
                 break
-            jacobian = np.empty((6, 7))
-            for j in range(7):
-                nudged = q.copy()
-                nudged[j] += eps
-                jacobian[:, j] = (e - error(nudged)) / eps  # d(reached)/dq = -d(error)/dq
+            jacobian = self.tcp_jacobian(q)
             damping = 1e-6
             step = jacobian.T @ np.linalg.solve(jacobian @ jacobian.T + damping * np.eye(6), e)
             q = np.clip(q + step, self.lower_limits, self.upper_limits)

@@ -62,3 +62,19 @@ def test_inverse_kinematics_top_down_grasps(panda):
 def test_unreachable_target_raises_with_its_pose(panda):
     with pytest.raises(IKError, match="no inverse kinematics for the TCP at Pose"):
         panda.inverse_tcp(Pose([2.0, 0.0, 0.5], [1, 0, 0, 0]), np.random.default_rng(1))
+
+
+def test_tcp_jacobian_matches_finite_differences(panda):
+    q = np.array([0.3, -0.4, 0.2, -2.0, 0.1, 1.8, 0.6])
+    jacobian = panda.tcp_jacobian(q)
+    eps = 1e-4  # central differences (PyBullet's link poses carry single-precision noise)
+    for j in range(7):
+        plus, minus = q.copy(), q.copy()
+        plus[j] += eps
+        minus[j] -= eps
+        a, b = panda.forward_tcp(plus), panda.forward_tcp(minus)
+        linear = (a.position - b.position) / (2 * eps)
+        turn = a.rotation @ b.rotation.T
+        angular = np.array([turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1]]) / (4 * eps)
+        assert np.allclose(jacobian[:3, j], linear, atol=1e-3), (j, jacobian[:3, j], linear)
+        assert np.allclose(jacobian[3:, j], angular, atol=1e-3), (j, jacobian[3:, j], angular)
