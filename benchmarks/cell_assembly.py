@@ -106,7 +106,7 @@ def main() -> int:
     parser.add_argument("--procedural", type=int, default=20, help="objects per category (level 3)")
     parser.add_argument("--categories", nargs="+", default=["chair", "table", "cabinet"])
     parser.add_argument("--furniture", type=Path, help="folder of real assembly folders")
-    parser.add_argument("--json", type=Path, help="write every record here")
+    parser.add_argument("--json", type=Path, help="write every record here (after each object)")
     parser.add_argument("--keep", type=Path, help="keep each object's output folder (report.json, overview.png, "
                         "...) under this folder, for diagnosis")
     parser.add_argument("--only", type=int, nargs="+", help="procedural object indices to run (default: all)")
@@ -120,20 +120,22 @@ def main() -> int:
             for i in args.only or range(args.procedural):
                 assembly = generate(category, "3", np.random.default_rng([2000, i]), f"{category}_{i}")
                 records.append(run_one(assembly, work, args.keep))
+                everything[category] = records
+                save(args.json, everything)
                 r = records[-1]
                 print(f"{category} {i}: exit {r['exit_code']} {r['wall_s']:.0f} s "
                       f"{(r.get('failure') or {}).get('message', '')[:160]}", flush=True)
             rows.append(table(f"{category} (level 3)", records))
-            everything[category] = records
         if args.furniture:
             records = []
             for folder in sorted(p for p in args.furniture.iterdir() if (p / "assembly.json").is_file()):
                 records.append(run_scaled(read_assembly(folder), work, args.keep))
+                everything["furniture"] = records
+                save(args.json, everything)
                 r = records[-1]
                 print(f"{folder.name}: exit {r['exit_code']} scale {r['scale']} {r['wall_s']:.0f} s "
                       f"{(r.get('failure') or {}).get('message', '')[:160]}", flush=True)
             rows.append(table("real furniture", records))
-            everything["furniture"] = records
     print("\n| set | objects | success | median max position error mm | median max rotation error deg | "
           "median plan s | median simulation s | median wall s |")
     print("|---|---|---|---|---|---|---|---|")
@@ -144,10 +146,14 @@ def main() -> int:
                 failure = r.get("failure") or {}
                 print(f"- {label} {r['name']} (scale {r.get('scale', 1.0)}): exit {r['exit_code']}, "
                       f"{failure.get('stage')}: {failure.get('message', '')[:300]}")
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(everything, indent=1, default=float) + "\n")
     return 0
+
+
+def save(path: Path | None, everything: dict) -> None:
+    """Write every record so far (after each object: an interrupted run keeps what it measured)."""
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(everything, indent=1, default=float) + "\n")
 
 
 if __name__ == "__main__":
