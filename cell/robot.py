@@ -54,12 +54,13 @@ class Panda:
         self.body = self.pb.loadURDF(f"{pybullet_data.getDataPath()}/{urdf}", position, orientation,
                                      useFixedBase=True, flags=self.pb.URDF_USE_SELF_COLLISION,
                                      physicsClientId=self.cid)
-        names = {}
-        self.lower, self.upper = [], []
+        names, self._movable = {}, []  # movable: the joints PyBullet's Jacobian has a column for
         for j in range(self.pb.getNumJoints(self.body, physicsClientId=self.cid)):
             info = self.pb.getJointInfo(self.body, j, physicsClientId=self.cid)
             names[info[1].decode()] = j
             names[info[12].decode()] = j  # link names map to their joint index too
+            if info[2] != self.pb.JOINT_FIXED:
+                self._movable.append(j)
         self.arm = [names[n] for n in ARM_JOINTS]
         self.fingers = [names[n] for n in FINGER_JOINTS]
         self.tcp_link = names[TCP_LINK]
@@ -67,8 +68,6 @@ class Panda:
         infos = [self.pb.getJointInfo(self.body, j, physicsClientId=self.cid) for j in self.arm]
         self.lower_limits = np.array([i[8] for i in infos])
         self.upper_limits = np.array([i[9] for i in infos])
-        self._movable = [j for j in range(self.pb.getNumJoints(self.body, physicsClientId=self.cid))
-                         if self.pb.getJointInfo(self.body, j, physicsClientId=self.cid)[2] != self.pb.JOINT_FIXED]
         self._arm_columns = [self._movable.index(j) for j in self.arm]
         # the TCP link's frame origin in its centre-of-mass frame, where calculateJacobian takes its point
         _, _, com_position, com_orientation, _, _ = self.pb.getLinkState(self.body, self.tcp_link,

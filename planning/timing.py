@@ -409,7 +409,8 @@ def time_path(waypoints: Sequence[np.ndarray], limits: JointLimits,
         bounds = tuple(np.asarray(b, dtype=np.float64) for b in position_limits)
         _check_within(waypoints, *bounds)
     checked = is_valid is not None or first_invalid is not None
-    allowed = [0.0 if k in set(stops) else np.inf for k in range(len(waypoints))]
+    stopped = set(stops)
+    allowed = [0.0 if k in stopped else np.inf for k in range(len(waypoints))]
     corners = plan_corners(waypoints, limits, max_deviation_rad, allowed=allowed)
     timed = time_corners(waypoints, limits, corners)
     if not checked and bounds is None:
