@@ -20,6 +20,8 @@ from planning.assembly import Assembly, AssemblyPart
 from planning.pose import Pose
 
 REPAIR_GIVEN_POSES = False  # given (--poses) targets are taken as they are; predicted ones are repaired
+ANIMATION_FRAME_S = 0.4  # simulated seconds between the frames of animation.gif
+ANIMATION_FPS = 10.0  # its playback: 4x the simulated speed
 
 
 class Pipeline:
@@ -94,6 +96,12 @@ class Pipeline:
         return assembly_with_poses(assembly, dict(zip(assembly.part_names, poses)))
 
     # --- 3-7: sequence, kitting, motion, timing, simulation ---------------------------------------------------
+    def _record_sequence(self, sequence) -> None:
+        for index, step in enumerate(sequence.steps, start=1):
+            entry = self.entries[step.part]
+            entry.update(order=index, insertion_direction=[float(v) for v in step.insertion_direction],
+                         fastened_to=list(step.fastened_to))
+
     def plan_and_simulate(self) -> int:
         from cell.plan import PlanningFailed, plan_cell
         from planning.motion import MotionSettings
@@ -103,10 +111,7 @@ class Pipeline:
             sequence = plan_assembly_sequence(self.target, seed=self.args.seed)
         if not sequence.success:
             raise StageFailed(EXIT_PLANNING, "sequence", sequence.reason)
-        for index, step in enumerate(sequence.steps, start=1):
-            entry = self.entries[step.part]
-            entry.update(order=index, insertion_direction=[float(v) for v in step.insertion_direction],
-                         fastened_to=list(step.fastened_to))
+        self._record_sequence(sequence)
         self.console.say("    order: " + " > ".join(sequence.order))
 
         bars = []
@@ -139,6 +144,10 @@ class Pipeline:
                 bar.close()
         for name in ("kitting", "motion", "timing"):
             self.console.stage_seconds[name] = self.plan.seconds.get(name, 0.0)
+        if self.plan.sequence is not None and self.plan.sequence.order != sequence.order:
+            self._record_sequence(self.plan.sequence)
+            self.console.say("    order planned again with the arm checked at every target: "
+                             + " > ".join(self.plan.sequence.order))
         self.report["world_from_assembly"] = pose_json(self.plan.world_from_assembly)
         self.report["jig_turn_deg"] = self.plan.jig_turn_deg
         for task in self.plan.tasks:
@@ -173,7 +182,7 @@ class Pipeline:
                          tuple("fixture" if n == "floor" else n for n in fasten[t.part]))
                  for t in plan.tasks]
         static = [StaticBody(o.name, o.mesh, o.world_from_obstacle) for o in plan.static]
-        settings = SimSettings(record_every_s=None if self.args.no_animation else 0.25)
+        settings = SimSettings(record_every_s=None if self.args.no_animation else ANIMATION_FRAME_S)
         with self.console.stage("simulation", f"PyBullet physics at {settings.rate_hz:.0f} Hz, "
                                               f"{plan.program.duration_s:.0f} s of robot motion"):
             bar = self.console.bar(100, "%")
@@ -202,7 +211,7 @@ class Pipeline:
 
         if self.plan is not None and self.samples is not None:
             lower, upper = self.plan.joint_limits
-            write_exports(self.plan.program, folder, lower, upper)
+            write_exports(self.plan.program, folder, lower, upper, self.samples)
         if self.target is not None:
             final = None
             if self.simulation is not None:
@@ -215,7 +224,7 @@ class Pipeline:
         if self.simulation is not None and self.simulation.frames:
             from cell.simulate import write_gif
 
-            write_gif(self.simulation.frames, folder / "animation.gif")
+            write_gif(self.simulation.frames, folder / "animation.gif", fps=ANIMATION_FPS)
 
 
 def _advance(bar, fraction: float) -> None:

@@ -25,11 +25,20 @@ from planning.disassembly import SequenceResult
 from planning.fixture import fixture_pads
 from planning.grasp import Grasp, feasible_grasps
 from planning.gripper import clearance_gripper
-from planning.kitting import HAND_CLEARANCE_M, KittingArea, KittingError, KittingSlot, Reach, plan_kitting
+from planning.kitting import (
+    HAND_CLEARANCE_M,
+    NO_GRASP_AT_TARGET,
+    KittingArea,
+    KittingError,
+    KittingSlot,
+    Reach,
+    plan_kitting,
+)
 from planning.motion import MotionSettings
 from planning.payload import mass_properties
 from planning.pose import Pose
 from planning.robot_collision import RobotCollisionChecker
+from planning.sequence import plan_assembly_sequence
 
 PANDA_REACH_M = 0.855  # from the shoulder (joint 2) to the flange, fully stretched
 SHOULDER_HEIGHT_M = 0.333
@@ -64,6 +73,7 @@ class CellPlan:
     joint_limits: tuple[np.ndarray, np.ndarray]  # lower, upper (rad), from the robot's URDF
     seconds: dict[str, float] = field(default_factory=dict)
     jig_turn_deg: float = 0.0  # how far the jig was turned from the scene's pose to make the plan work
+    sequence: SequenceResult | None = None  # the order planned with: the given one, or one planned for the arm
 
     @property
     def program(self):
@@ -120,9 +130,9 @@ class _KitReach(Reach):
 
     def __init__(self, panda: Panda, scene: Scene, rng: np.random.Generator, home_q: np.ndarray,
                  targets: dict[str, Pose], meshes: dict[str, trimesh.Trimesh], order: list[str],
-                 insertion: dict[str, np.ndarray], touches: dict[str, tuple[str, ...]]) -> None:
+                 insertion: dict[str, np.ndarray]) -> None:
         self.panda, self.rng, self.home_q = panda, rng, home_q
-        self.targets, self.meshes, self.order, self.insertion, self.touches = targets, meshes, order, insertion, touches
+        self.targets, self.meshes, self.order, self.insertion = targets, meshes, order, insertion
         self.checker = RobotCollisionChecker(scene.robot.world_from_base.matrix(), {})
         table = _table(scene)
         self.table = {"table": (ConvexPart.from_mesh("table", table.mesh), table.world_from_obstacle.matrix())}
@@ -138,8 +148,9 @@ class _KitReach(Reach):
             out[name] = (ConvexPart.from_mesh(name, self.meshes[name]), self.targets[name].matrix())
         return out
 
-    def _chain(self, poses: list[Pose], seed: np.ndarray | None, checks: list[frozenset[str]]):
-        """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its set, or None."""
+    def _chain(self, poses: list[Pose], seed: np.ndarray | None, checks: list[frozenset[str]] | None):
+        """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its set (no collision
+        check when ``checks`` is None), or None."""
         if not all(self._within_reach(pose) for pose in poses):
             return None
         for attempt in range(3):
@@ -151,7 +162,8 @@ class _KitReach(Reach):
                     configurations.append(previous)
             except IKError:
                 continue
-            if all(self.checker.is_valid(q, ignore=ignore) for q, ignore in zip(configurations, checks)):
+            if checks is None or all(self.checker.is_valid(q, ignore=ignore)
+                                     for q, ignore in zip(configurations, checks)):
                 return configurations
         return None
 
@@ -161,22 +173,45 @@ class _KitReach(Reach):
         flange = world_from_tcp.position - world_from_tcp.rotation[:, 2] * HAND_LENGTH_M
         return float(np.linalg.norm(flange - self.shoulder)) <= PANDA_REACH_M
 
+    def _at_target_world(self, part: str, grasp: Grasp) -> list[Pose]:
+        """Load the jig as it is when ``part`` arrives (the parts before it, the part itself as :data:`SELF`) and
+        open the hand for ``grasp``; returns the TCP poses of the release, the pre-place and the retreat's end."""
+        tcp = self.targets[part] @ grasp.part_from_tcp
+        pre = Pose(tcp.position - self.insertion[part] * INSERTION_M, tcp.quat_wxyz)
+        retreat = Pose(tcp.position - tcp.rotation[:, 2] * APPROACH_M, tcp.quat_wxyz)
+        world = self._world([], self.order[:self.order.index(part)])
+        world[SELF] = (ConvexPart.from_mesh(part, self.meshes[part]), self.targets[part].matrix())
+        self.checker.set_obstacles(world)
+        self.checker.hold(None, opening_m=grasp.opening_m)
+        return [tcp, pre, retreat]
+
+    # release: the arm and the opened fingers clear the neighbours the part touches (the part's own contacts are
+    # planned; the fingers around it were checked by the grasp planner); pre-place: the part is in the hand, not
+    # at its target; end of the retreat: clear of everything, the released part included
+    _AT_TARGET_IGNORES = (frozenset({SELF}), frozenset({SELF}), frozenset())
+
     def at_target(self, part: str, grasp: Grasp) -> tuple | None:
         key = (part, id(grasp))
         if key not in self.at_target_cache:
-            tcp = self.targets[part] @ grasp.part_from_tcp
-            pre = Pose(tcp.position - self.insertion[part] * INSERTION_M, tcp.quat_wxyz)
-            retreat = Pose(tcp.position - tcp.rotation[:, 2] * APPROACH_M, tcp.quat_wxyz)
-            world = self._world([], self.order[:self.order.index(part)])
-            world[SELF] = (ConvexPart.from_mesh(part, self.meshes[part]), self.targets[part].matrix())
-            self.checker.set_obstacles(world)
-            self.checker.hold(None, opening_m=grasp.opening_m)
-            # release: touching its neighbours is planned; pre-place: the part is in the hand, not at its target;
-            # end of the retreat: clear of everything, the released part included
-            touching = frozenset(self.touches[part]) | {SELF}
-            found = self._chain([tcp, pre, retreat], self.home_q, [touching, frozenset({SELF}), frozenset()])
+            poses = self._at_target_world(part, grasp)
+            found = self._chain(poses, self.home_q, list(self._AT_TARGET_IGNORES))
             self.at_target_cache[key] = None if found is None else tuple(found)
         return self.at_target_cache[key]
+
+    def arm_meets(self, part: str, grasp: Grasp) -> set[str] | None:
+        """The parts on the jig that the arm (hand open, the part released) meets at ``grasp``'s release, pre-place
+        and retreat configurations when ``part`` arrives; None when these have no inverse kinematics, or meet the
+        table or the arm itself."""
+        found = self._chain(self._at_target_world(part, grasp), self.home_q, None)
+        if found is None:
+            return None
+        met: set[str] = set()
+        for q, ignore in zip(found, self._AT_TARGET_IGNORES):
+            while (hit := self.checker.first_collision(q, ignore=ignore | met)) is not None:
+                if hit.b not in self.meshes or hit.b == part:
+                    return None
+                met.add(hit.b)
+        return met
 
     def at_pick(self, part, grasp, world_from_part, obstacles, support=()):
         target = self.at_target(part, grasp)
@@ -207,6 +242,7 @@ class _KitReach(Reach):
 JIG_TURNS_DEG = (0.0, 90.0, 270.0, 180.0)
 MOTION_RETRIES = 4  # motion planning restarts with a failing part's next grasp at most this often
 DEFAULT_TIME_BUDGET_S = 180.0  # the jig is turned about +z until the parts can be kitted and placed
+REORDERS = 3  # a part the arm cannot place among the parts before it moves ahead of them, at most this often
 
 
 def jig_turned(scene: Scene, turn_deg: float) -> Scene:
@@ -258,6 +294,101 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
     raise error
 
 
+class _Kit:
+    """The kitting layout for one assembly order: every part's slot in the kitting area with a grasp that works at
+    its pick and at its target (arm checked), the order's steps, insertion directions (world frame) and the
+    obstacles each part is planned to touch at its target (neighbours placed before it, its jig pad). Raises
+    :class:`_KitFailed`."""
+
+    def __init__(self, scene: Scene, assembly: Assembly, sequence: SequenceResult, panda: Panda,
+                 static: list[StaticObstacle], targets: dict[str, Pose], hand_check, seed: int,
+                 deadline: float) -> None:
+        world_from_assembly = scene.fixture.world_from_assembly
+        order = sequence.order
+        self.steps = {s.part: s for s in sequence.steps}
+        # the sequence's directions are in the assembly frame; the jig may be turned
+        self.insertion = {n: world_from_assembly.rotation @ np.asarray(self.steps[n].insertion_direction,
+                                                                       dtype=np.float64) for n in order}
+        pads_under = {o.name.removeprefix("pad "): o.name for o in static if o.name.startswith("pad ")}
+        self._pad_obstacles = [(o.mesh, o.world_from_obstacle) for o in static if o.name.startswith("pad ")]
+        self._assembly, self._targets, self._floor_z = assembly, targets, scene.table.top_z
+        self.touches = {}
+        for name in order:
+            touching = [n for n in self.steps[name].fastened_to if n in targets]
+            self.touches[name] = tuple(touching + ([pads_under[name]] if name in pads_under else []))
+        home_q = np.array(scene.robot.home_q)
+        kit_reach = _KitReach(panda, scene, np.random.default_rng([seed, 3]), home_q, targets,
+                              {p.name: p.mesh for p in assembly.parts}, order, self.insertion)
+        ranked: dict[str, list[Grasp]] = {}
+        bounds = {p.name: world_bounds(p.mesh, targets[p.name]) for p in assembly.parts}
+        self.near: dict[str, list[str]] = {}
+        for name in order:  # grasps clear of the hand's surroundings at the target, ranked for the target
+            self.near[name] = [n for n in order[:order.index(name)]
+                               if box_distance(bounds[n], bounds[name]) < NEAR_TARGET_M]
+            ranked[name] = self._hand_grasps(name, hand_check.candidates[name], self.near[name])
+        self.reach, self.ranked, self.hand_check = kit_reach, ranked, hand_check
+
+        def ok_at_target(name: str, grasp: Grasp) -> bool:
+            return kit_reach.at_target(name, grasp) is not None
+
+        try:
+            self.slots = plan_kitting(order, [assembly.part(n).mesh for n in order], ranked, ok_at_target,
+                                      _kitting_area(scene, assembly), prefer_near_xy=world_from_assembly.position[:2],
+                                      reach=kit_reach, deadline=deadline,
+                                      target_rotations={n: targets[n].rotation for n in order})
+        except KittingError as exc:
+            raise _KitFailed(self, exc) from exc
+
+    def _hand_grasps(self, name: str, grasps: list[Grasp], present: list[str]) -> list[Grasp]:
+        """Of ``grasps``, those whose hand clears the parts ``present`` and the jig's pads at the part's target
+        (and along its insertion), ranked for the target."""
+        obstacles = [(self._assembly.part(n).mesh, self._targets[n]) for n in present] + self._pad_obstacles
+        return feasible_grasps(grasps, self._targets[name], obstacles, self.insertion[name], floor_z=self._floor_z,
+                               gripper=clearance_gripper(HAND_CLEARANCE_M))
+
+    def blockers(self, part: str) -> frozenset[str] | None:
+        """The fewest parts placed before ``part`` that keep the hand or the arm from one of its grasps at its
+        target (grasps that clear the pads on an empty jig, whose release, pre-place and retreat have inverse
+        kinematics), or None when there is no such grasp (placing the part earlier would not help)."""
+        best: frozenset[str] | None = None
+        for grasp in self._hand_grasps(part, self.hand_check.candidates[part], []):
+            met = self.reach.arm_meets(part, grasp)
+            if met is None:
+                continue
+            met |= {n for n in self.near[part] if not self._hand_grasps(part, [grasp], [n])}
+            if met and (best is None or len(met) < len(best)):
+                best = frozenset(met)
+        return best
+
+
+class _KitFailed(Exception):
+    """A :class:`_Kit` whose layout failed (``kit``: its reach checks and ranked grasps), with the error."""
+
+    def __init__(self, kit: _Kit, error: KittingError) -> None:
+        super().__init__(str(error))
+        self.kit, self.error = kit, error
+
+
+def _kitting_failed(exc: KittingError, started: float, context: str = "") -> PlanningFailed:
+    error = PlanningFailed("kitting", f"{exc} ({context})" if context else str(exc), exc.part)
+    error.seconds = {"kitting": time.perf_counter() - started}
+    return error
+
+
+class _PlacedBefore:
+    """The sequence planner's grasp check (``(part, parts present, insertion direction) -> grasp or None``) with
+    precedences: part P has no grasp while any part in ``after[P]`` is present, so P is placed before them (the
+    arm, not the hand, meets them at P's target); otherwise the hand's check decides."""
+
+    def __init__(self, hand_check, after: dict[str, frozenset[str]]) -> None:
+        self.hand_check, self.after = hand_check, after
+
+    def __call__(self, name: str, present: frozenset, insertion_direction: np.ndarray) -> Grasp | None:
+        if self.after.get(name, frozenset()) & present:
+            return None
+        return self.hand_check(name, present, insertion_direction)
+
+
 def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int,
                    motion: MotionSettings | None, progress, on_stage, deadline: float) -> CellPlan:
     on_stage = on_stage or (lambda name: None)
@@ -265,9 +396,6 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
     world_from_assembly = scene.fixture.world_from_assembly
     home_q = np.array(scene.robot.home_q)
     static = [_table(scene)] + _pads(scene, assembly)
-    pads_under = {o.name.removeprefix("pad "): o.name for o in static if o.name.startswith("pad ")}
-    order = sequence.order
-    steps = {s.part: s for s in sequence.steps}
     targets = {p.name: world_from_assembly @ p.assembly_from_part for p in assembly.parts}
     payloads = {p.name: mass_properties(p.mesh) for p in assembly.parts}
 
@@ -279,40 +407,29 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
         started = time.perf_counter()
         from planning.sequence import GraspChecker
 
-        candidates = GraspChecker(assembly, seed).candidates
-        pad_obstacles = [(o.mesh, o.world_from_obstacle) for o in static if o.name.startswith("pad ")]
-
-        touches = {}
-        for name in order:
-            touching = [n for n in steps[name].fastened_to if n in targets]
-            touches[name] = tuple(touching + ([pads_under[name]] if name in pads_under else []))
-        kit_reach = _KitReach(panda, scene, np.random.default_rng([seed, 3]), home_q, targets,
-                              {p.name: p.mesh for p in assembly.parts}, order,
-                              {n: np.asarray(steps[n].insertion_direction, dtype=np.float64) for n in order}, touches)
-
-        ranked: dict[str, list[Grasp]] = {}
-        bounds = {p.name: world_bounds(p.mesh, targets[p.name]) for p in assembly.parts}
-        for name in order:  # grasps clear of the hand's surroundings at the target, ranked for the target
-            before = order[:order.index(name)]
-            near = [(assembly.part(n).mesh, targets[n]) for n in before
-                    if box_distance(bounds[n], bounds[name]) < NEAR_TARGET_M]
-            ranked[name] = feasible_grasps(candidates[name], targets[name], near + pad_obstacles,
-                                           steps[name].insertion_direction, floor_z=scene.table.top_z,
-                                           gripper=clearance_gripper(HAND_CLEARANCE_M))
-
-        def ok_at_target(name: str, grasp: Grasp) -> bool:
-            return kit_reach.at_target(name, grasp) is not None
-
-        try:
-            slots = plan_kitting(order, [assembly.part(n).mesh for n in order], ranked, ok_at_target,
-                                 _kitting_area(scene, assembly),
-                                 prefer_near_xy=world_from_assembly.position[:2],
-                                 reach=kit_reach, deadline=deadline,
-                                 target_rotations={n: targets[n].rotation for n in order})
-        except KittingError as exc:
-            error = PlanningFailed("kitting", str(exc))
-            error.seconds = {"kitting": time.perf_counter() - started}
-            raise error from exc
+        hand_check = GraspChecker(assembly, seed)
+        # the sequence checked the hand only: a part that the arm cannot place among the parts before it is
+        # placed before those, and the order planned again (at most REORDERS times)
+        after: dict[str, frozenset[str]] = {}
+        for reorder in range(REORDERS + 1):
+            try:
+                kit = _Kit(scene, assembly, sequence, panda, static, targets, hand_check, seed, deadline)
+                break
+            except _KitFailed as failed:
+                exc = failed.error
+                context = f"with the order planned again {reorder} time(s) for the arm" if reorder else ""
+                if exc.kind != NO_GRASP_AT_TARGET or reorder == REORDERS or time.perf_counter() > deadline:
+                    raise _kitting_failed(exc, started, context) from exc
+                blockers = failed.kit.blockers(exc.part)
+                if not blockers:
+                    raise _kitting_failed(exc, started, context) from exc
+                after[exc.part] = after.get(exc.part, frozenset()) | blockers
+                again = plan_assembly_sequence(assembly, seed, grasp_check=_PlacedBefore(hand_check, after))
+                if not again.success:
+                    raise _kitting_failed(exc, started, f"the arm meets {', '.join(sorted(blockers))} there, and "
+                                          f"no order places it before them: {again.reason}") from exc
+                sequence = again
+        slots, insertion, touches = kit.slots, kit.insertion, kit.touches
         seconds["kitting"] = time.perf_counter() - started
 
         # --- pick and place -------------------------------------------------------------------------------------
@@ -329,10 +446,9 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
         for attempt in range(MOTION_RETRIES + 1):
             tasks = []
             for slot in slots:
-                step = steps[slot.part]
                 grasp, reach = options[slot.part][0]
                 tasks.append(PartTask(slot.part, slot.world_from_part, targets[slot.part], grasp,
-                                      np.asarray(step.insertion_direction, dtype=np.float64), touches[slot.part],
+                                      insertion[slot.part], touches[slot.part],
                                       slot.rests_on or f"pedestal {slot.part}", reach[0][0], reach[1][0],
                                       payloads[slot.part]))
             world = CellWorld(panda, scene.robot.world_from_base, convex_static, convex_parts,
@@ -356,7 +472,7 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
         seconds["timing"] = timing_seconds
         seconds["motion"] = time.perf_counter() - started - timing_seconds
         limits = (panda.lower_limits.copy(), panda.upper_limits.copy())
-    return CellPlan(world_from_assembly, static, slots, tasks, task_plan, limits, seconds)
+    return CellPlan(world_from_assembly, static, slots, tasks, task_plan, limits, seconds, sequence=sequence)
 
 
 __all__ = ["CellPlan", "PlanningFailed", "StaticObstacle", "out_of_reach", "plan_cell"]

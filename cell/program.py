@@ -137,9 +137,11 @@ def program_json(program: Program) -> dict:
             "steps": steps}
 
 
-def write_exports(program: Program, folder: Path, lower: np.ndarray, upper: np.ndarray) -> dict[str, np.ndarray]:
-    """Check the limits, then write ``trajectory.csv`` and ``program.json`` into ``folder``; returns the samples."""
-    samples = program.sample(CSV_RATE_HZ)
+def write_exports(program: Program, folder: Path, lower: np.ndarray, upper: np.ndarray,
+                  samples: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """Check the limits, then write ``trajectory.csv`` and ``program.json`` into ``folder``; returns the samples.
+    ``samples``: ``program.sample(CSV_RATE_HZ)`` when the caller has it already (they are checked again)."""
+    samples = program.sample(CSV_RATE_HZ) if samples is None else samples
     check_limits(samples, lower, upper)
     folder.mkdir(parents=True, exist_ok=True)
     header = (["t"] + [f"q_{n}" for n in ARM_JOINTS] + [f"qd_{n}" for n in ARM_JOINTS]

@@ -53,7 +53,7 @@ What a program must allow for:
 
 from __future__ import annotations
 
-import colorsys
+import contextlib
 import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -66,8 +66,8 @@ from scipy.spatial import HalfspaceIntersection
 from scipy.spatial.transform import Rotation
 
 from cell.bullet import BulletClient
+from cell.frames import CellPictures, CellSnapshot, FrameRecorder
 from cell.program import GripperStep, MotionStep, Program
-from cell.render import visual_shape
 from cell.robot import VELOCITY_LIMITS, Panda
 from cell.scene import CameraConfig
 from cell.symmetry import part_symmetry, position_error_m, rotation_error_deg
@@ -325,10 +325,6 @@ def _write_pieces_obj(pieces: Sequence[trimesh.Trimesh], path: Path) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-def _palette(count: int) -> list[tuple[float, float, float, float]]:
-    return [(*colorsys.hsv_to_rgb((0.08 + 0.61803 * k) % 1.0, 0.6, 0.9), 1.0) for k in range(count)]
-
-
 class _Cell:
     """The cell loaded into one client: the robot, static bodies and parts, with names for every body id."""
 
@@ -348,12 +344,11 @@ class _Cell:
         self.part_from_com: dict[str, Pose] = {}
         with tempfile.TemporaryDirectory(prefix="image-assembly-sim-") as folder:
             for body in static_bodies:
-                self.static[body.name] = self._add_body(Path(folder), body.mesh, body.world_from_body, None,
-                                                        _static_rgba(body.name))
-            for part, rgba in zip(parts, _palette(len(parts))):
+                self.static[body.name] = self._add_body(Path(folder), body.mesh, body.world_from_body, None)
+            for part in parts:
                 props = mass_properties(part.mesh, settings.density_kg_m3)
                 self.part_from_com[part.name] = props.part_from_com
-                self.parts[part.name] = self._add_body(Path(folder), part.mesh, part.world_from_start, props, rgba,
+                self.parts[part.name] = self._add_body(Path(folder), part.mesh, part.world_from_start, props,
                                                        inset_m=0.5 * settings.joint_clearance_m)
         self.names.update({v: k for k, v in self.static.items()})
         self.names.update({v: k for k, v in self.parts.items()})
@@ -371,13 +366,13 @@ class _Cell:
                 pb.setCollisionFilterPair(self.robot, self.robot, index_of[a], index_of[b], 0, physicsClientId=cid)
 
     def _add_body(self, folder: Path, mesh: trimesh.Trimesh, world_from_body: Pose, props: MassProperties | None,
-                  rgba, inset_m: float = 0.0) -> int:
+                  inset_m: float = 0.0) -> int:
+        """A body of ``mesh``'s convex pieces (no visual shape: pictures come from :mod:`cell.frames`)."""
         pb, cid = self.pb, self.cid
         path = folder / f"{mesh_key(mesh)}-{inset_m:.6f}.obj"
         if not path.exists():
             _write_pieces_obj([inset(piece, inset_m) for piece in convex_pieces(mesh)], path)
         collision = pb.createCollisionShape(pb.GEOM_MESH, fileName=str(path), physicsClientId=cid)
-        visual = visual_shape(pb, cid, mesh, rgba)
         if collision < 0:
             raise RuntimeError(f"PyBullet refused the collision pieces of a mesh of {len(mesh.faces)} faces")
         position, orientation = world_from_body.to_pybullet()
@@ -385,7 +380,7 @@ class _Cell:
         if props is not None:
             com_position, com_orientation = props.part_from_com.to_pybullet()
             inertial = {"baseInertialFramePosition": com_position, "baseInertialFrameOrientation": com_orientation}
-        body = pb.createMultiBody(props.mass_kg if props else 0.0, collision, visual, position, orientation,
+        body = pb.createMultiBody(props.mass_kg if props else 0.0, collision, -1, position, orientation,
                                   physicsClientId=cid, **inertial)
         dynamics = {"localInertiaDiagonal": props.inertia_kg_m2} if props else {}
         # no collision margin: PyBullet's default pads convex hulls by about 1 mm each, so stacked parts would float
@@ -421,10 +416,6 @@ class _Cell:
         """Names of ``others`` within ``distance_m`` of ``body`` (closest points, after the last collision pass)."""
         return [name for name, other in others.items() if other != body and self.pb.getClosestPoints(
             body, other, distance_m, physicsClientId=self.cid)]
-
-
-def _static_rgba(name: str) -> tuple[float, float, float, float]:
-    return (0.78, 0.68, 0.55, 1.0) if name == "table" else (0.55, 0.57, 0.62, 1.0)
 
 
 # --- the program's steps ----------------------------------------------------------------------------------------------
@@ -522,8 +513,9 @@ class _Run:
     """One simulation: the cell, the program's clock and everything recorded."""
 
     def __init__(self, cell: _Cell, initial_width_m: float, parts: Sequence[SimPart], settings: SimSettings,
-                 planned_grasps: Mapping[int, Pose] | None = None) -> None:
+                 planned_grasps: Mapping[int, Pose] | None = None, recorder: FrameRecorder | None = None) -> None:
         self.cell, self.pb, self.cid = cell, cell.pb, cell.cid
+        self.recorder = recorder  # takes a snapshot every ``settings.record_every_s``
         self.settings = settings
         self.parts = {p.name: p for p in parts}
         self.dt = 1.0 / settings.rate_hz
@@ -540,8 +532,7 @@ class _Run:
         self.released_at: dict[str, Pose] = {}  # world_from_part when last released
         self.grasp_failures: list[GraspFailure] = []
         self.contacts, self.limits = _EventLog(), _EventLog()
-        self.frames: list[np.ndarray] = []
-        self.next_frame_s = 0.0 if settings.record_every_s else np.inf
+        self.next_frame_s = 0.0 if settings.record_every_s and recorder is not None else np.inf
         self.start_supports: dict[str, frozenset[str]] = {}
         self.planned_gaps: dict[tuple[str, str], float] = {}  # (part, fasten_to neighbour) -> gap at their targets
         self.target_supports = self._target_supports()
@@ -608,8 +599,15 @@ class _Run:
         self._check_limits(role)
         self._check_contacts(role)
         if self.time_s >= self.next_frame_s - 1e-9:
-            self.frames.append(render_frame(self.cell, self.settings.camera))
+            self.recorder.add(self.snapshot())
             self.next_frame_s += self.settings.record_every_s
+
+    def snapshot(self) -> CellSnapshot:
+        """Where the parts and the robot's joints are now (for a picture)."""
+        cell = self.cell
+        fingers = self.pb.getJointStates(cell.robot, cell.panda.fingers, physicsClientId=self.cid)
+        return CellSnapshot({name: cell.world_from_part(name) for name in cell.parts},
+                            tuple(float(v) for v in self.arm_q), (float(fingers[0][0]), float(fingers[1][0])))
 
     def _check_limits(self, role: _StepRole) -> None:
         panda, s = self.cell.panda, self.settings
@@ -779,14 +777,17 @@ def simulate_program(program: Program, parts: Sequence[SimPart], static_bodies: 
     starts = np.concatenate([[0.0], np.cumsum(durations)])
     step_of = np.clip(np.searchsorted(starts, samples["t"], side="right") - 1, 0, len(program.steps) - 1)
     roles = _step_roles(program)
-    with BulletClient() as client:
+    # the pictures are rendered beside the physics (a second process where there is a spare core)
+    recorder = (FrameRecorder(parts, static_bodies, world_from_robot_base, settings.camera, settings.urdf)
+                if settings.record_every_s else None)
+    with recorder if recorder is not None else contextlib.nullcontext(), BulletClient() as client:
         pb, cid = client.pb, client.client_id
         pb.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
         pb.setTimeStep(1.0 / settings.rate_hz, physicsClientId=cid)
         cell = _Cell(client, parts, static_bodies, world_from_robot_base, settings)
         grasps = _planned_grasps(cell, program, roles, {p.name: p for p in parts},
                                  lambda index: q[min(np.searchsorted(samples["t"], starts[index]), len(q) - 1)])
-        run = _Run(cell, program.initial_width_m, parts, settings, grasps)
+        run = _Run(cell, program.initial_width_m, parts, settings, grasps, recorder)
         settle_motion = run.start(q[0])
         count = len(q)
         report_every = max(1, count // 100)
@@ -805,18 +806,19 @@ def simulate_program(program: Program, parts: Sequence[SimPart], static_bodies: 
         if current is not None and isinstance(program.steps[current], GripperStep):
             run.leave_gripper_step(program.steps[current], roles[current])
         run.settle(q[-1], "settling after the program")
-        if settings.record_every_s:
-            run.frames.append(render_frame(cell, settings.camera))
+        if recorder is not None:
+            recorder.add(run.snapshot())
         results = _part_results(run, settle_motion)
         final_q, opening = tuple(float(v) for v in run.arm_q), _opening(cell)
         simulated_s = run.time_s + settings.settle_s
+        frames = recorder.frames() if recorder is not None else []
     if progress is not None:
         progress(1.0)
     contacts = [ContactEvent(e["start_s"], e["end_s"], e["step"], e["body_a"], e["body_b"], max(e["severity"], 0.0))
                 for e in run.contacts.events()]
     limits = [LimitEvent(e["start_s"], e["end_s"], e["step"], e["joint"], e["quantity"], e["peak"], e["limit"])
               for e in run.limits.events()]
-    return SimulationResult(results, contacts, limits, run.grasp_failures, run.frames, settings.rate_hz, simulated_s,
+    return SimulationResult(results, contacts, limits, run.grasp_failures, frames, settings.rate_hz, simulated_s,
                             time.perf_counter() - started, final_q, opening,
                             [n for n, m in settle_motion.items() if m > settings.settle_tolerance_m])
 
@@ -859,29 +861,15 @@ def _part_results(run: _Run, settle_motion: dict[str, float]) -> list[PartResult
 
 
 # --- pictures ---------------------------------------------------------------------------------------------------------
-def render_frame(cell: _Cell, camera: CameraConfig) -> np.ndarray:
-    """(H, W, 3) uint8 RGB of the cell as it is, from ``camera`` (TinyRenderer)."""
-    pb, cid = cell.pb, cell.cid
-    view = pb.computeViewMatrix(list(camera.eye), list(camera.target), [0.0, 0.0, 1.0])
-    projection = pb.computeProjectionMatrixFOV(camera.fov_deg, camera.width_px / camera.height_px, 0.02, 10.0)
-    _, _, rgba, _, _ = pb.getCameraImage(camera.width_px, camera.height_px, viewMatrix=view,
-                                         projectionMatrix=projection, renderer=pb.ER_TINY_RENDERER,
-                                         flags=pb.ER_NO_SEGMENTATION_MASK, physicsClientId=cid)
-    return np.asarray(rgba, dtype=np.uint8).reshape(camera.height_px, camera.width_px, 4)[..., :3].copy()
-
-
 def render_state(parts: Sequence[SimPart], static_bodies: Sequence[StaticBody], world_from_robot_base: Pose,
                  world_from_part: Mapping[str, Pose], arm_q: Sequence[float], opening_m: float = 0.08,
                  camera: CameraConfig = DEFAULT_CAMERA, urdf: str = "franka_panda/panda.urdf") -> np.ndarray:
     """(H, W, 3) uint8 RGB still of the cell with the parts at ``world_from_part`` (parts not named stay at their
     start), the arm at ``arm_q`` (rad) and the fingers ``opening_m`` apart; no physics."""
-    with BulletClient() as client:
-        cell = _Cell(client, parts, static_bodies, world_from_robot_base, SimSettings(urdf=urdf))
-        for name, pose in world_from_part.items():
-            cell.set_part(name, pose)
-        cell.panda.set_arm(np.asarray(arm_q, dtype=np.float64))
-        cell.panda.set_opening(opening_m)
-        return render_frame(cell, camera)
+    half = float(np.clip(opening_m, 0.0, 0.08)) / 2.0
+    with CellPictures(parts, static_bodies, world_from_robot_base, urdf) as pictures:
+        return pictures.render(CellSnapshot(dict(world_from_part), tuple(float(v) for v in arm_q), (half, half)),
+                               camera)
 
 
 def render_final(result: SimulationResult, parts: Sequence[SimPart], static_bodies: Sequence[StaticBody],

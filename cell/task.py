@@ -146,10 +146,12 @@ class CellWorld:
             self._grown_cache[key] = shrunk(part, -TRANSIT_CLEARANCE_M)
         return self._grown_cache[key]
 
-    def validity(self, ignore: frozenset[str] = frozenset(), transit: bool = False):
-        """``q -> bool`` against the current world, skipping the obstacles named in ``ignore``; ``transit``:
-        with every obstacle grown by :data:`TRANSIT_CLEARANCE_M`."""
-        return _Validity(self.transit_checker if transit else self.checker, ignore)
+    def validity(self, ignore: frozenset[str] = frozenset(), transit: bool = False,
+                 held_ignore: frozenset[str] = frozenset()):
+        """``q -> bool`` against the current world, skipping the obstacles named in ``ignore``, and for the held
+        part only those in ``held_ignore`` (the robot must still clear them); ``transit``: with every obstacle
+        grown by :data:`TRANSIT_CLEARANCE_M`."""
+        return _Validity(self.transit_checker if transit else self.checker, ignore, held_ignore)
 
     def hold(self, part: str | None, grasp: Grasp | None, opening_m: float,
              margin_m: float = HELD_MARGIN_M) -> None:
@@ -250,9 +252,9 @@ class CellWorld:
     def _collision_words(self, q: np.ndarray, valid=None) -> str:
         """The first collision at ``q`` as ``valid`` (a :class:`_Validity`) sees it: its checker, skipping what it
         ignores; the exact world when ``valid`` is something else."""
-        checker, ignore = ((valid.checker, valid.ignore) if isinstance(valid, _Validity)
-                           else (self.checker, frozenset()))
-        hit = checker.first_collision(np.asarray(q, dtype=np.float64), ignore=ignore)
+        checker, ignore, held_ignore = ((valid.checker, valid.ignore, valid.held_ignore)
+                                        if isinstance(valid, _Validity) else (self.checker, frozenset(), frozenset()))
+        hit = checker.first_collision(np.asarray(q, dtype=np.float64), ignore=ignore, held_ignore=held_ignore)
         return "no collision at its end" if hit is None else str(hit)
 
     def transit(self, start_q: np.ndarray, goal_q: np.ndarray, valid, part: str, stage: str) -> np.ndarray:
@@ -268,25 +270,47 @@ class CellWorld:
                                        settings, segment_valid=getattr(valid, "segment", None))
             except MotionPlanningError as exc:
                 raise TaskPlanningError(exc.kind, part, stage, str(exc)) from exc
-            if all(straight_line_valid(valid, a, b, step_rad=DENSE_CHECK_RAD) for a, b in zip(path[:-1], path[1:])):
+            if _dense_path_valid(valid, path, DENSE_CHECK_RAD):
                 return path
             settings = replace(settings, check_resolution=settings.check_resolution / 4)
         raise TaskPlanningError("timeout", part, stage, "every planned path grazes an obstacle between OMPL's checks")
 
 
-class _Validity:
-    """``q -> bool`` against a checker's world skipping ``ignore``; ``segment(a, b)`` checks a straight joint
-    segment densely (no point of the robot or the held part moves more than 2 mm between checks)."""
+def _dense_path_valid(valid, path: np.ndarray, step_rad: float) -> bool:
+    """Whether every configuration on the straight joint segments of ``path`` (K, 7), checked every ``step_rad``,
+    is valid; in one batched query where ``valid`` has ``first_invalid``."""
+    first_invalid = getattr(valid, "first_invalid", None)
+    if first_invalid is None:
+        return all(straight_line_valid(valid, a, b, step_rad=step_rad) for a, b in zip(path[:-1], path[1:]))
+    samples = [path[:1]]
+    for a, b in zip(path[:-1], path[1:]):
+        steps = max(1, int(np.ceil(float(np.max(np.abs(b - a))) / step_rad)))
+        samples.append(a + (b - a) * (np.arange(1, steps + 1) / steps)[:, None])
+    return first_invalid(np.concatenate(samples)) is None
 
-    def __init__(self, checker: RobotCollisionChecker, ignore: frozenset[str]) -> None:
-        self.checker, self.ignore = checker, ignore
+
+class _Validity:
+    """``q -> bool`` against a checker's world skipping ``ignore`` (and ``held_ignore`` for the held part only);
+    ``segment(a, b)`` checks a straight joint segment densely (no point of the robot or the held part moves more
+    than 2 mm between checks)."""
+
+    def __init__(self, checker: RobotCollisionChecker, ignore: frozenset[str],
+                 held_ignore: frozenset[str] = frozenset()) -> None:
+        self.checker, self.ignore, self.held_ignore = checker, frozenset(ignore), frozenset(held_ignore)
 
     def __call__(self, q) -> bool:
-        return self.checker.is_valid(np.asarray(q, dtype=np.float64), ignore=self.ignore)
+        return self.checker.is_valid(np.asarray(q, dtype=np.float64), ignore=self.ignore,
+                                     held_ignore=self.held_ignore)
 
     def segment(self, q_from, q_to) -> bool:
         return self.checker.segment_valid(np.asarray(q_from, dtype=np.float64), np.asarray(q_to, dtype=np.float64),
-                                          ignore=self.ignore)
+                                          ignore=self.ignore, held_ignore=self.held_ignore)
+
+    def first_invalid(self, qs) -> int | None:
+        """Index of the first invalid configuration of ``qs`` (N, 7), or None: the same answers as calling this
+        object on each, with forward kinematics and the broad phase batched."""
+        return self.checker.first_invalid(np.asarray(qs, dtype=np.float64), ignore=self.ignore,
+                                          held_ignore=self.held_ignore)
 
 
 def _approach_to_pick(world: CellWorld, task: PartTask, q: np.ndarray):
@@ -326,6 +350,17 @@ class _ClearExceptNearEnds:
         near = float(np.min(np.linalg.norm(self.ends - np.asarray(q, dtype=np.float64), axis=1))) <= self.radius_rad
         return near and self.exact(q)
 
+    def first_invalid(self, qs) -> int | None:
+        """Index of the first configuration of ``qs`` (N, 7) this object rejects, or None (batched)."""
+        qs = np.asarray(qs, dtype=np.float64)
+        start = 0
+        while (found := self.clear.first_invalid(qs[start:])) is not None:
+            index = start + found
+            if not self(qs[index]):
+                return index
+            start = index + 1
+        return None
+
 
 def _free_space_validity(world: CellWorld, start_q: np.ndarray, goal_q: np.ndarray):
     """Validity for a move of the empty hand from ``start_q`` to ``goal_q``: with the transit clearance, relaxed
@@ -347,7 +382,7 @@ def _timed(world: CellWorld, path: np.ndarray, valid, part: str, stage: str,
     if len(path) < 2:
         path = np.stack([path[0], path[0] + 1e-9])
     try:
-        return time_path(path, limits, is_valid=valid,
+        return time_path(path, limits, is_valid=valid, first_invalid=getattr(valid, "first_invalid", None),
                          position_limits=(world.panda.lower_limits, world.panda.upper_limits), stops=stops)
     except ValueError as exc:
         raise TaskPlanningError("straight_line_blocked", part, stage, str(exc)) from exc
@@ -403,8 +438,8 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         lift = world.straight_line(grasp_q, tcp_pick, np.array([0.0, 0.0, LIFT_M]), valid, name, "lift")
         add_motion(name, "lift", lift, valid, name, carrying)
         tcp_place = task.world_from_target @ grasp.part_from_tcp
-        ignore_at_target = frozenset(task.touches_at_target)
-        valid_insert = world.validity(ignore_at_target)
+        # the part arrives touching its neighbours and pads; the arm and fingers must still clear them
+        valid_insert = world.validity(held_ignore=frozenset(task.touches_at_target))
         place_q = world.solve_ik(tcp_place, lift[-1], valid_insert, name, "release at the target",
                                  hint_q=task.place_q_hint)
         insertion, corner = _insertion(world, place_q, tcp_place, task.insertion_direction,

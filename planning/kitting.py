@@ -151,8 +151,22 @@ class KittingArea:
     gap_m: float = 0.06
 
 
+NO_GRASP = "no_grasp"  # KittingError.kind: the part has no grasp at all
+NO_GRASP_AT_TARGET = "no_grasp_at_target"  # no grasp of the part works at its target
+NO_PLACE = "no_place"  # no place in the kitting area with a grasp that works at the pick and at the target
+TOO_LARGE = "too_large"  # the parts need more kitting area than there is
+OUT_OF_TIME = "out_of_time"
+
+
 class KittingError(RuntimeError):
-    """No stable pose and grasp serve a part at both pick and place, or the parts do not fit the area."""
+    """No stable pose and grasp serve a part at both pick and place, or the parts do not fit the area.
+
+    ``kind``: :data:`NO_GRASP`, :data:`NO_GRASP_AT_TARGET`, :data:`NO_PLACE`, :data:`TOO_LARGE` or
+    :data:`OUT_OF_TIME`; ``part``: the part at fault (None for the whole layout)."""
+
+    def __init__(self, message: str, kind: str = NO_PLACE, part: str | None = None) -> None:
+        super().__init__(message)
+        self.kind, self.part = kind, part
 
 
 def stable_rest_poses(mesh: trimesh.Trimesh, max_poses: int = 6) -> list[tuple[np.ndarray, float]]:
@@ -420,17 +434,18 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
         raise KittingError(f"the parts need at least {needed:.2f} m2 of kitting area (boards stacked, gaps "
                            f"included), the kitting ring offers {offered:.2f} m2 within reach on the table: "
                            "the object is too large for this cell (use a scaled-down model of it, or a scene "
-                           "with a larger kitting area)")
+                           "with a larger kitting area)", TOO_LARGE)
     # largest footprints first (they need the roomy places, and boards are stacked on them), ties in order
     area_of = {name: float(np.prod(np.sort(mesh.extents)[1:])) for name, mesh in zip(names, meshes)}
     by_size = sorted(range(len(names)), key=lambda k: (-round(area_of[names[k]], 4), k))
     for name, mesh in ((names[k], meshes[k]) for k in by_size):
         if time.perf_counter() > deadline:
-            raise KittingError(f"part {name!r}: the planning time budget ran out while laying out the kit")
+            raise KittingError(f"part {name!r}: the planning time budget ran out while laying out the kit",
+                               OUT_OF_TIME, name)
         chosen = layout.place(name, candidates[name], grasp_ok_at_target)
         if chosen is None:
-            raise KittingError(_why_not(name, mesh, candidates[name], grasp_ok_at_target, area,
-                                        layout.prefer))
+            raise KittingError(*_why_not(name, mesh, candidates[name], grasp_ok_at_target, area, layout.prefer),
+                               name)
         layout.slots.append(chosen)
     slots = [dataclasses.replace(slot, grasp=layout.options[slot.part][0][0], reach=layout.options[slot.part][0][1],
                                  alternatives=tuple(layout.options[slot.part][1:]))
@@ -688,6 +703,8 @@ def _flat_top(mesh: trimesh.Trimesh, world_from_part: Pose) -> tuple[float, np.n
     half = 0.5 * np.array([np.ptp(along), np.ptp(across)])
     if mesh.area_faces[upward].sum() < TOP_FACE_FRACTION * 4 * half[0] * half[1]:
         return None
+    if top_z - float(world[:, 2].min()) > 2.0 * half[1]:
+        return None  # standing on an edge (its top is a narrow edge): nothing may rest on it
     centre = 0.5 * (along.max() + along.min()) * long_axis + 0.5 * (across.max() + across.min()) * short_axis
     return top_z, centre, float(np.arctan2(long_axis[1], long_axis[0])), half
 
@@ -740,16 +757,18 @@ def _grasp_key(grasp: Grasp) -> tuple:
             round(grasp.opening_m, 9))
 
 
-def _why_not(name, mesh, grasps, grasp_ok_at_target, area, prefer) -> str:
+def _why_not(name, mesh, grasps, grasp_ok_at_target, area, prefer) -> tuple[str, str]:
+    """(message, :class:`KittingError` kind) of why part ``name`` found no slot."""
     if not grasps:
-        return f"part {name!r}: no grasp at all"
+        return f"part {name!r}: no grasp at all", NO_GRASP
     if not any(grasp_ok_at_target(name, g) for g in grasps):
-        return f"part {name!r}: no grasp works at its target"
+        return f"part {name!r}: no grasp works at its target", NO_GRASP_AT_TARGET
     rest_from_part = stable_rest_poses(mesh)[0][0]
     rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
     half = 0.5 * (rested.max(axis=0) - rested.min(axis=0))[:2]
     if not candidate_places(area, np.array([max(half), min(half)]), prefer):
         return (f"part {name!r}: its footprint ({2 * max(half):.2f} x {2 * min(half):.2f} m) does not fit the kitting "
-                f"ring ({area.inner_radius_m:.2f}-{area.outer_radius_m:.2f} m around the robot, on the table)")
+                f"ring ({area.inner_radius_m:.2f}-{area.outer_radius_m:.2f} m around the robot, on the table)",
+                TOO_LARGE)
     return (f"part {name!r}: no free place in the kitting ring where one grasp works at the pick (reachable, clear "
-            "of its neighbours) and at its target")
+            "of its neighbours) and at its target", NO_PLACE)

@@ -83,27 +83,33 @@ class GraspChecker:
         self.pads = fixture_pads(assembly.part_names, assembly.meshes_in_assembly_frame())
         self.pad_obstacles = [(pad.mesh(), pad.assembly_from_pad) for pad in self.pads]
 
-    def __call__(self, name: str, present: frozenset, insertion_direction: np.ndarray) -> Grasp | None:
+    def feasible(self, name: str, present: frozenset, insertion_direction: np.ndarray) -> list[Grasp]:
+        """The grasps of part ``name`` that the hand can use at its target among the parts ``present``, inserted
+        along ``insertion_direction`` (assembly frame), best first."""
         candidates = self.candidates[name]
         if not candidates:
-            return None
+            return []
         part = self.assembly.part(name)
         near = [self.assembly.part(n) for n in sorted(present)
                 if box_distance(self.bounds[name], self.bounds[n]) < HAND_REACH_M]
         obstacles = [(p.mesh, p.assembly_from_part) for p in near] + self.pad_obstacles
-        feasible = feasible_grasps(candidates, part.assembly_from_part, obstacles, insertion_direction,
-                                   floor_z=-PAD_HEIGHT_M)
+        return feasible_grasps(candidates, part.assembly_from_part, obstacles, insertion_direction,
+                               floor_z=-PAD_HEIGHT_M)
+
+    def __call__(self, name: str, present: frozenset, insertion_direction: np.ndarray) -> Grasp | None:
+        feasible = self.feasible(name, present, insertion_direction)
         return feasible[0] if feasible else None
 
 
 def plan_assembly_sequence(assembly: Assembly, seed: int = 0, check_grasps: bool = True,
-                           time_budget_s: float = 10.0) -> SequenceResult:
-    """Assembly order of ``assembly`` at its poses (metres, +z up, floor at z = 0)."""
+                           time_budget_s: float = 10.0, grasp_check=None) -> SequenceResult:
+    """Assembly order of ``assembly`` at its poses (metres, +z up, floor at z = 0). ``grasp_check``: replaces the
+    hand's check at the target (:class:`GraspChecker`), e.g. one that asks the arm too (``cell.plan``)."""
     parts = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
     poses = [p.assembly_from_part for p in assembly.parts]
-    checker = GraspChecker(assembly, seed) if check_grasps else None
+    checker = (grasp_check or GraspChecker(assembly, seed)) if check_grasps else None
     result = plan_sequence(parts, poses, checker, time_budget_s=time_budget_s)
-    if not result.success and checker is not None:
+    if not result.success and isinstance(checker, GraspChecker):
         graspless = [n for n, c in checker.candidates.items() if not c]  # computes the ones not asked for yet
         if graspless:
             from planning.grasp import explain_no_grasp

@@ -8,6 +8,8 @@ from planning.assembly import read_assembly
 from planning.grasp import Grasp, feasible_grasps
 from planning.kitting import (
     HAND,
+    NO_GRASP_AT_TARGET,
+    TOO_LARGE,
     KittingArea,
     KittingError,
     _polygons_overlap,
@@ -75,9 +77,10 @@ def test_chair_parts_lie_apart_in_the_ring_with_grasps_valid_at_pick():
 def test_no_grasp_at_target_is_named():
     assembly = read_assembly(sample_folder("table"))
     checker = GraspChecker(assembly)
-    with pytest.raises(KittingError, match="part 'top': no grasp works at its target"):
+    with pytest.raises(KittingError, match="part 'top': no grasp works at its target") as caught:
         plan_kitting(assembly.part_names[::-1], [p.mesh for p in assembly.parts][::-1], checker.candidates,
                      lambda name, grasp: name != "top", AREA)
+    assert caught.value.kind == NO_GRASP_AT_TARGET and caught.value.part == "top"  # what cell.plan acts on
 
 
 def test_a_ring_too_small_says_so():
@@ -87,8 +90,9 @@ def test_a_ring_too_small_says_so():
     from planning.grasp import antipodal_grasps
 
     grasps = antipodal_grasps(board, np.random.default_rng(0))
-    with pytest.raises(KittingError, match="too large for this cell"):
+    with pytest.raises(KittingError, match="too large for this cell") as caught:
         plan_kitting(["board"], [board], {"board": grasps}, lambda n, g: True, small)
+    assert caught.value.kind == TOO_LARGE
 
 
 def _plain_pedestal_top(mesh, rest_from_part):
@@ -186,3 +190,16 @@ def test_the_arm_at_the_target_is_checked_against_the_parts_own_support():
             assert slot.pedestal.world_from_pedestal.apply(slot.pedestal.mesh().vertices)[:, 1].min() >= -0.3
         mesh = assembly.part(slot.part).mesh
         assert slot.world_from_part.apply(mesh.vertices)[:, 1].min() >= -0.3
+
+
+def test_nothing_is_stacked_on_a_board_standing_on_its_edge():
+    """A board kitted standing (as it sits in its assembly) has a flat top only 14 mm wide: a board laid on it
+    would fall as soon as anything nudges it. Lying on its face, its top takes a board."""
+    from planning.kitting import _flat_top
+
+    board = trimesh.creation.box([0.4, 0.3, 0.014])
+    lying = Pose([0.4, 0.0, 0.127], [1.0, 0.0, 0.0, 0.0])
+    standing = Pose([0.4, 0.0, 0.27], [np.cos(np.pi / 4), np.sin(np.pi / 4), 0.0, 0.0])  # on its 0.4 m edge
+    top = _flat_top(board, lying)
+    assert top is not None and abs(top[0] - 0.134) < 1e-9 and np.allclose(sorted(2 * top[3]), [0.3, 0.4])
+    assert _flat_top(board, standing) is None

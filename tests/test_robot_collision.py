@@ -214,6 +214,27 @@ def test_ignore_applies_to_the_held_part_but_not_to_self_collision():
     assert not checker.is_valid(folded, ignore=frozenset({"table"}))
 
 
+def test_held_ignore_spares_the_held_part_but_not_the_robot():
+    """A neighbour the held part is planned to touch (``held_ignore``) must still be cleared by the fingers."""
+    checker = RobotCollisionChecker(np.eye(4), {})
+    q = np.array(load_scene().robot.home_q)
+    world_from_tcp = checker.world_from_tcp(q)
+    # a 2 cm cube in the hand, and a 1 cm slab through the TCP that cuts the cube and both open fingers
+    checker.hold(ConvexPart.from_mesh("cube", trimesh.creation.box([0.02, 0.02, 0.02])), np.eye(4), opening_m=0.08)
+    slab = ConvexPart.from_mesh("slab", trimesh.creation.box([0.2, 0.2, 0.01]))
+    checker.set_obstacles({"slab": (slab, world_from_tcp)})
+    hit = checker.first_collision(q, held_ignore=frozenset({"slab"}))
+    assert hit is not None and hit.a != "held cube" and hit.b == "slab"  # the fingers or hand still meet it
+    assert checker.first_collision(q, ignore=frozenset({"slab"})) is None
+    # a pebble inside the cube, which only the cube reaches: held_ignore makes it free
+    pebble = ConvexPart.from_mesh("pebble", trimesh.creation.box([0.004, 0.004, 0.004]))
+    checker.set_obstacles({"pebble": (pebble, world_from_tcp)})
+    assert checker.first_collision(q).a == "held cube"
+    assert checker.is_valid(q, held_ignore=frozenset({"pebble"}))
+    assert not checker.segment_valid(q + 0.01, q)  # the batch path honours the masks too
+    assert checker.segment_valid(q + 0.01, q, held_ignore=frozenset({"pebble"}))
+
+
 def test_finger_opening_moves_the_fingers():
     checker = RobotCollisionChecker(np.eye(4), {})
     q = np.array(load_scene().robot.home_q)

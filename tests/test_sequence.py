@@ -223,6 +223,26 @@ def test_chair_back_top_rail_after_slats():
             np.testing.assert_allclose(step.insertion_direction, [0, 0, -1])  # the channels allow nothing else
 
 
+def test_a_grasp_check_that_asks_more_reorders_the_parts():
+    """cell.plan plans the sequence again with a check that asks the arm too: a part that the check refuses while
+    another is present must come before it."""
+    assembly = Assembly("row", [box_part(name, (0.06, 0.06, 0.04), [x, 0, 0.02])
+                                for name, x in (("a", -0.2), ("b", 0.0), ("c", 0.2))])
+    hand = GraspChecker(assembly)
+    plain = plan_assembly_sequence(assembly)
+    assert plain.success and plain.order.index("c") < plain.order.index("a"), plain.order  # as ranked today
+    asked = []
+
+    def no_a_after_c(name, present, insertion_direction):
+        asked.append((name, present))
+        return None if name == "a" and "c" in present else hand(name, present, insertion_direction)
+
+    result = plan_assembly_sequence(assembly, grasp_check=no_a_after_c)
+    assert result.success, result.reason
+    assert result.order.index("a") < result.order.index("c") and asked
+    assert all(step.grasp is not None for step in result.steps)
+
+
 def test_part_without_grasp_is_named():
     assembly = two_box_stack(top_size=(0.1, 0.1, 0.1))  # a 10 cm cube on top: the hand opens 8 cm
     result = plan_assembly_sequence(assembly)
