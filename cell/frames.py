@@ -157,15 +157,25 @@ class FrameRecorder:
         """(H, W, 3) uint8 RGB per snapshot."""
         if self._process is not None:
             self._to_worker.put(None)
-            try:
-                answer = self._from_worker.get(timeout=RESULT_TIMEOUT_S)
-            except queue.Empty:
-                answer = "no answer"
+            answer = self._answer()
             self._stop()
             if isinstance(answer, np.ndarray) and len(answer) == len(self.snapshots):
                 return list(answer)
         with CellPictures(*self._scene) as pictures:  # in this process
             return [pictures.render(s, self.camera) for s in self.snapshots]
+
+    def _answer(self):
+        """The second process's frames (or its error's words); "no answer" when it died without one or took
+        longer than :data:`RESULT_TIMEOUT_S`."""
+        waited = 0.0
+        while waited < RESULT_TIMEOUT_S:
+            try:
+                return self._from_worker.get(timeout=1.0)
+            except queue.Empty:
+                waited += 1.0
+                if not self._process.is_alive() and self._from_worker.empty():
+                    break
+        return "no answer"
 
     def _stop(self) -> None:
         if self._process is not None:

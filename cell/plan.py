@@ -349,14 +349,16 @@ class _Kit:
     def blockers(self, part: str) -> frozenset[str] | None:
         """The fewest parts placed before ``part`` that keep the hand or the arm from one of its grasps at its
         target (grasps that clear the pads on an empty jig, whose release, pre-place and retreat have inverse
-        kinematics), or None when there is no such grasp (placing the part earlier would not help)."""
+        kinematics), or None when there is no such grasp (placing the part earlier would not help). Parts it rests
+        on are never among them: it cannot come before its supports."""
         best: frozenset[str] | None = None
+        supports = set(self.steps[part].rests_on)
         for grasp in self._hand_grasps(part, self.hand_check.candidates[part], []):
             met = self.reach.arm_meets(part, grasp)
             if met is None:
                 continue
             met |= {n for n in self.near[part] if not self._hand_grasps(part, [grasp], [n])}
-            if met and (best is None or len(met) < len(best)):
+            if met and not met & supports and (best is None or len(met) < len(best)):
                 best = frozenset(met)
         return best
 

@@ -43,3 +43,14 @@ def test_a_recorder_without_snapshots_gives_no_frames_and_ends_its_process():
     process = recorder._process
     assert recorder.frames() == []
     assert not process.is_alive() and not recorder.in_background
+
+
+def test_frames_are_rendered_here_when_the_second_process_dies():
+    parts, static, base = _cell()
+    home = tuple(load_scene().robot.home_q)
+    with FrameRecorder(parts, static, base, DEFAULT_CAMERA, background=True) as recorder:
+        recorder._process.kill()  # as if it crashed
+        recorder._process.join()
+        recorder.add(CellSnapshot({}, home, (0.04, 0.04)))
+        frames = recorder.frames()
+    assert len(frames) == 1 and frames[0].shape == (DEFAULT_CAMERA.height_px, DEFAULT_CAMERA.width_px, 3)
