@@ -47,6 +47,7 @@ from planning.timing import JointLimits, time_path
 APPROACH_M = 0.08  # straight approach to the grasp and retreat after release, along the grasp's approach axis
 LIFT_M = 0.10  # straight lift after grasping, world +z
 INSERTION_M = 0.08  # straight insertion along the insertion direction into the target
+LEAD_IN_STEPS_M = (0.04, 0.08, 0.16, 0.24)  # farther back it may start, where its pre-place lies between neighbours
 CARTESIAN_STEP_M = 0.02  # inverse kinematics every this much along straight segments
 MAX_JOINT_STEP_RAD = 0.35  # larger jumps between neighbouring straight-line solutions mean a branch switch
 HELD_MARGIN_M = 0.002  # the held part is checked pulled in by this much, so it may slide along faces it touches
@@ -444,10 +445,16 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
                                  hint_q=task.place_q_hint)
         insertion, corner = _insertion(world, place_q, tcp_place, task.insertion_direction,
                                        world.clearance_shift(name, task), valid_insert, name)
-        # carry with the part grown by a margin (clear of everything by more than the simulator's contact slop),
-        # or, where the pre-place pose already slides along a neighbour, pulled in like the insertion
+        # carry with the part grown by a margin (clear of everything by more than the simulator's contact slop);
+        # where the pre-place pose already lies between neighbours, the insertion starts farther back, where the
+        # part is clear (a drawer's back between its sides), or else the carry checks the part pulled in
         world.hold(name, grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
         valid = world.validity(transit=True)
+        if not valid(insertion[0]) and valid(lift[-1]):
+            lead_in = _lead_in(world, name, grasp, insertion[0], task.insertion_direction, valid, valid_insert)
+            if lead_in is not None:
+                insertion = np.concatenate([lead_in, insertion[1:]])
+                corner = tuple(k + len(lead_in) - 1 for k in corner)
         if not valid(insertion[0]) or not valid(lift[-1]):
             world.hold(name, grasp, grasp.width_m, margin_m=0.0)  # as it is, if its ends allow
             valid = world.validity()
@@ -510,6 +517,28 @@ def _insertion(world: CellWorld, place_q: np.ndarray, world_from_tcp_place: Pose
             pass
     back = -direction * INSERTION_M + shift_m
     return world.straight_line(place_q, world_from_tcp_place, back, valid, part, "insertion")[::-1], ()
+
+
+def _lead_in(world: CellWorld, part: str, grasp: Grasp, pre_q: np.ndarray, direction: np.ndarray, clear,
+             valid_insert) -> np.ndarray | None:
+    """Joint waypoints (K, 7) of a straight line along the insertion ``direction`` (world, unit) that ends at the
+    pre-place configuration ``pre_q`` and starts :data:`LEAD_IN_STEPS_M` farther back, at the first distance where
+    the part, grown by the carry margin, is ``clear``; None when none is (or the line leaves the reachable space).
+    The line is checked like the insertion (``valid_insert``, the part held as for it); the hold is left grown."""
+    world_from_tcp_pre = world.panda.forward_tcp(pre_q)
+    found = None
+    for extra_m in LEAD_IN_STEPS_M:
+        world.hold(part, grasp, grasp.width_m)
+        try:
+            line = world.straight_line(pre_q, world_from_tcp_pre, -direction * extra_m, valid_insert, part, "lead-in")
+        except TaskPlanningError:
+            break
+        world.hold(part, grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
+        if clear(line[-1]):
+            found = line[::-1]
+            break
+    world.hold(part, grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
+    return found
 
 
 def _insertion_limits(world: CellWorld, path: np.ndarray, limits: JointLimits) -> JointLimits:

@@ -333,10 +333,39 @@ def _yaw(angle_rad: float) -> Pose:
     return Pose([0.0, 0.0, 0.0], [np.cos(angle_rad / 2), 0.0, 0.0, np.sin(angle_rad / 2)])
 
 
+_UNIT_SQUARE = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
+
+
 def _corners(centre_xy: np.ndarray, yaw_rad: float, half_xy: np.ndarray) -> np.ndarray:
     c, s = np.cos(yaw_rad), np.sin(yaw_rad)
-    local = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * half_xy
+    local = _UNIT_SQUARE * half_xy
     return local @ np.array([[c, s], [-s, c]]) + centre_xy
+
+
+def _corners_many(centres_xy: np.ndarray, yaws_rad: np.ndarray, half_xy: np.ndarray) -> np.ndarray:
+    """:func:`_corners` of N rectangles of the same half extents at once: (N, 4, 2)."""
+    c, s = np.cos(yaws_rad)[:, None], np.sin(yaws_rad)[:, None]
+    local = _UNIT_SQUARE * half_xy  # (4, 2)
+    x = local[None, :, 0] * c - local[None, :, 1] * s
+    y = local[None, :, 0] * s + local[None, :, 1] * c
+    return np.stack([x, y], axis=-1) + np.asarray(centres_xy)[:, None, :]
+
+
+def _quads_overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """:func:`_polygons_overlap` of every quadrilateral of ``a`` (N, 4, 2) with every one of ``b`` (M, 4, 2):
+    (N, M) bool."""
+    a, b = np.asarray(a, dtype=np.float64)[:, None], np.asarray(b, dtype=np.float64)[None]
+    a, b = np.broadcast_to(a, np.broadcast_shapes(a.shape, b.shape)), np.broadcast_to(b, np.broadcast_shapes(
+        a.shape, b.shape))
+    axes = []
+    for poly in (a, b):
+        edges = np.roll(poly, -1, axis=-2) - poly
+        axes.append(np.stack([-edges[..., 1], edges[..., 0]], axis=-1))
+    axes = np.concatenate(axes, axis=-2)  # (N, M, 8, 2)
+    pa = np.einsum("nmvj,nmaj->nmav", a, axes)  # (N, M, 8 axes, 4 vertices)
+    pb = np.einsum("nmvj,nmaj->nmav", b, axes)
+    separated = (pa.max(axis=-1) <= pb.min(axis=-1)) | (pb.max(axis=-1) <= pa.min(axis=-1))
+    return ~separated.any(axis=-1)
 
 
 def _polygons_overlap(a: np.ndarray, b: np.ndarray) -> bool:
@@ -361,20 +390,22 @@ def candidate_places(area: KittingArea, half_xy: np.ndarray,
     rectangles. The long side runs along the ring or, where that packs better, across it."""
     centre = np.asarray(area.centre_xy, dtype=np.float64)
     lo, hi = np.asarray(area.table_min_xy), np.asarray(area.table_max_xy)
+    half_xy = np.asarray(half_xy, dtype=np.float64)
+    angles = np.deg2rad(np.arange(-180.0, 180.0, ANGLE_STEP_DEG))
+    keep_out = np.array([_box_corners(k_lo, k_hi) for k_lo, k_hi in area.keep_out]).reshape(-1, 4, 2)
     places = []
     for across in (False, True):
         depth = half_xy[0] if across else half_xy[1]  # half extent along the radius
-        for radius in np.arange(area.inner_radius_m + depth, area.outer_radius_m + 1e-9, RADIAL_STEP_M):
-            for angle in np.deg2rad(np.arange(-180.0, 180.0, ANGLE_STEP_DEG)):
-                xy = centre + radius * np.array([np.cos(angle), np.sin(angle)])
-                long_yaw = angle if across else angle + np.pi / 2
-                corners = _corners(xy, long_yaw, half_xy)
-                if np.any(corners < lo) or np.any(corners > hi):
-                    continue
-                grown = _corners(xy, long_yaw, half_xy + area.gap_m / 2)
-                if any(_polygons_overlap(grown, _box_corners(k_lo, k_hi)) for k_lo, k_hi in area.keep_out):
-                    continue
-                places.append((xy, float(long_yaw)))
+        radii = np.arange(area.inner_radius_m + depth, area.outer_radius_m + 1e-9, RADIAL_STEP_M)
+        radius, angle = (grid.ravel() for grid in np.meshgrid(radii, angles, indexing="ij"))
+        xy = centre + radius[:, None] * np.column_stack([np.cos(angle), np.sin(angle)])
+        long_yaw = angle if across else angle + np.pi / 2
+        corners = _corners_many(xy, long_yaw, half_xy)
+        ok = np.all((corners >= lo) & (corners <= hi), axis=(1, 2))
+        if len(keep_out) and ok.any():
+            grown = _corners_many(xy[ok], long_yaw[ok], half_xy + area.gap_m / 2)
+            ok[np.flatnonzero(ok)] = ~_quads_overlap(grown, keep_out).any(axis=1)
+        places += [(xy[k], float(long_yaw[k])) for k in np.flatnonzero(ok)]
     # near the jig, but not at the edge of the reach, where arm configurations are awkward
     comfortable = area.inner_radius_m + COMFORTABLE_FRACTION * (area.outer_radius_m - area.inner_radius_m)
     places.sort(key=lambda p: float(np.linalg.norm(p[0] - prefer_near_xy))
@@ -530,9 +561,16 @@ class _Layout:
         key = tuple(np.round(half_ring, 4))
         if key not in self.places_cache:
             self.places_cache[key] = candidate_places(self.area, half_ring, self.prefer)
-        for xy, long_yaw in self.places_cache[key]:
-            grown = _corners(xy, long_yaw, half_ring + self.area.gap_m / 2)
-            if any(_polygons_overlap(grown, s.footprint_world) for s in self.slots):
+        places = self.places_cache[key]
+        if not places:
+            return
+        taken = np.zeros(len(places), dtype=bool)
+        if self.slots:  # places whose footprint (grown by half the gap) meets a slot's
+            grown = _corners_many(np.array([xy for xy, _ in places]), np.array([yaw for _, yaw in places]),
+                                  half_ring + self.area.gap_m / 2)
+            taken = _quads_overlap(grown, np.array([s.footprint_world for s in self.slots])).any(axis=1)
+        for (xy, long_yaw), skip in zip(places, taken):
+            if skip:
                 continue
             yaw = long_yaw if long_is_x else long_yaw - np.pi / 2  # the rest frame's long axis along long_yaw
             world_from_rest = Pose([xy[0], xy[1], self.area.table_z_m + self.area.pedestal_height_m],

@@ -8,13 +8,16 @@ import trimesh
 from cell.bullet import BulletClient
 from cell.robot import Panda
 from cell.task import (
+    CARRY_CLEARANCE_M,
     INSERTION_M,
     INSERTION_SPEED_M_S,
+    LEAD_IN_STEPS_M,
     PANDA_LIMITS,
     SLIDE_CLEARANCE_M,
     CellWorld,
     PartTask,
     _insertion_limits,
+    _lead_in,
 )
 from planning.collision import ConvexPart
 from planning.grasp import Grasp
@@ -82,3 +85,35 @@ def test_insertions_are_timed_slowly_enough_for_tight_fits(panda):
 
     assert top_speed(time_path(path, PANDA_LIMITS)) > 4 * INSERTION_SPEED_M_S  # what it would be at full speed
     assert 0.7 * INSERTION_SPEED_M_S < top_speed(time_path(path, limits)) <= 1.05 * INSERTION_SPEED_M_S
+
+
+def test_an_insertion_starts_farther_back_where_its_pre_place_lies_between_neighbours(panda):
+    """A plank whose ends come down between pairs of posts 0.5 mm off its faces: 8 cm above its target it is
+    still between them, so the carry (the plank grown by 2 mm) cannot end there. The insertion starts farther back
+    along the insertion, at the first of LEAD_IN_STEPS_M where the grown plank is clear, and is straight."""
+    plank = trimesh.creation.box((0.008, 0.4, 0.02))
+    post = trimesh.creation.box((0.01, 0.03, 0.3))
+    target = Pose([0.5, 0.0, 0.2], [0.0, 1.0, 0.0, 0.0])  # the TCP (= the plank's frame) pointing down
+    posts_top_z = 0.2 + 0.13  # 13 cm above the target: 8 cm of insertion is not enough, 8 + 8 cm is
+    placed = {f"post {i}": Pose([0.5 + sx * (0.004 + 0.0005 + 0.005), sy * 0.17, posts_top_z - 0.15], [1, 0, 0, 0])
+              for i, (sx, sy) in enumerate(((1, 1), (-1, 1), (1, -1), (-1, -1)))}
+    parts = {"plank": ConvexPart.from_mesh("plank", plank)}
+    parts.update({name: ConvexPart.from_mesh(name, post) for name in placed})
+    world = CellWorld(panda, Pose.identity(), {}, parts, np.random.default_rng(0))
+    world.set_part_poses(placed)
+    grasp = Grasp(Pose.identity(), width_m=0.008, opening_m=0.02, score=1.0, centroid_score=1.0, contact_score=1.0)
+    world.hold("plank", grasp, grasp.width_m)
+    valid_insert = world.validity()
+    start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
+    place_q = world.solve_ik(target, start, valid_insert, "plank", "test")
+    pre = world.straight_line(place_q, target, -DOWN * INSERTION_M, valid_insert, "plank", "test")[-1]
+    world.hold("plank", grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
+    clear = world.validity(transit=True)
+    assert not clear(pre)  # the grown plank meets the posts at the pre-place pose
+    lead_in = _lead_in(world, "plank", grasp, pre, DOWN, clear, valid_insert)
+    assert lead_in is not None and clear(lead_in[0])
+    np.testing.assert_allclose(lead_in[-1], pre)
+    tcp = np.array([panda.forward_tcp(q).position for q in lead_in])
+    rise_m = tcp[0, 2] - tcp[-1, 2]
+    assert rise_m == pytest.approx(LEAD_IN_STEPS_M[1], abs=1e-4)  # 4 cm more was not enough, 8 cm was
+    assert np.max(np.abs(tcp[:, :2] - tcp[-1, :2])) < 1e-4  # straight down the insertion
