@@ -135,7 +135,8 @@ class _KitReach(Reach):
         self.targets, self.meshes, self.order, self.insertion = targets, meshes, order, insertion
         self.checker = RobotCollisionChecker(scene.robot.world_from_base.matrix(), {})
         table = _table(scene)
-        self.table = {"table": (ConvexPart.from_mesh("table", table.mesh), table.world_from_obstacle.matrix())}
+        self._convex: dict[int, tuple[trimesh.Trimesh, ConvexPart]] = {}  # id(mesh) -> (mesh, its convex pieces)
+        self.table = {"table": (self._convex_part(table.mesh), table.world_from_obstacle.matrix())}
         self.settings = IKSettings(restarts=4)
         self.shoulder = scene.robot.world_from_base.apply(np.array([[0.0, 0.0, SHOULDER_HEIGHT_M]]))[0]
         self.at_target_cache: dict[tuple[str, int], tuple | None] = {}
@@ -143,10 +144,19 @@ class _KitReach(Reach):
     def _world(self, kit: list[tuple[trimesh.Trimesh, Pose]], jig_parts: list[str]) -> dict:
         out = dict(self.table)
         for k, (mesh, pose) in enumerate(kit):
-            out[f"kit {k}"] = (ConvexPart.from_mesh(f"kit {k}", mesh), pose.matrix())
+            out[f"kit {k}"] = (self._convex_part(mesh), pose.matrix())
         for name in jig_parts:
-            out[name] = (ConvexPart.from_mesh(name, self.meshes[name]), self.targets[name].matrix())
+            out[name] = (self._convex_part(self.meshes[name]), self.targets[name].matrix())
         return out
+
+    def _convex_part(self, mesh: trimesh.Trimesh) -> ConvexPart:
+        """``mesh``'s convex pieces, computed once per mesh object (the checks ask for the same ones thousands of
+        times; the obstacle's name is its key in the world, not the ConvexPart's)."""
+        entry = self._convex.get(id(mesh))
+        if entry is None or entry[0] is not mesh:
+            entry = (mesh, ConvexPart.from_mesh("obstacle", mesh))
+            self._convex[id(mesh)] = entry
+        return entry[1]
 
     def _chain(self, poses: list[Pose], seed: np.ndarray | None, checks: list[frozenset[str]] | None):
         """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its set (no collision
@@ -180,7 +190,7 @@ class _KitReach(Reach):
         pre = Pose(tcp.position - self.insertion[part] * INSERTION_M, tcp.quat_wxyz)
         retreat = Pose(tcp.position - tcp.rotation[:, 2] * APPROACH_M, tcp.quat_wxyz)
         world = self._world([], self.order[:self.order.index(part)])
-        world[SELF] = (ConvexPart.from_mesh(part, self.meshes[part]), self.targets[part].matrix())
+        world[SELF] = (self._convex_part(self.meshes[part]), self.targets[part].matrix())
         self.checker.set_obstacles(world)
         self.checker.hold(None, opening_m=grasp.opening_m)
         return [tcp, pre, retreat]
@@ -223,7 +233,7 @@ class _KitReach(Reach):
         pre = Pose(tcp.position - tcp.rotation[:, 2] * APPROACH_M, tcp.quat_wxyz)
         lifted = Pose(tcp.position + np.array([0.0, 0.0, LIFT_M]), tcp.quat_wxyz)
         world = self._world(list(obstacles), self.order[:self.order.index(part)])
-        world[SELF] = (ConvexPart.from_mesh(part, self.meshes[part]), world_from_part.matrix())
+        world[SELF] = (self._convex_part(self.meshes[part]), world_from_part.matrix())
         self.checker.set_obstacles(world)
         self.checker.hold(None, opening_m=grasp.opening_m)
         # grasp: the fingers around the part were checked by the grasp planner; pre-grasp: clear of the part;

@@ -90,10 +90,23 @@ class Pedestal:
     chocks: tuple[tuple[tuple[float, float, float], Pose], ...] = ()
 
     def mesh(self) -> trimesh.Trimesh:
-        """The pedestal and its chocks (separate boxes; pedestal frame, metres)."""
-        boxes = [trimesh.creation.box(self.size_m)]
-        boxes += [trimesh.creation.box(size, transform=pose.matrix()) for size, pose in self.chocks]
-        return trimesh.util.concatenate(boxes) if len(boxes) > 1 else boxes[0]
+        """The pedestal and its chocks (separate boxes; pedestal frame, metres). Pedestals of the same shape share
+        one mesh (kitting asks for it thousands of times): do not modify it."""
+        key = (tuple(self.size_m), tuple((tuple(size), pose.position.tobytes(), pose.quat_wxyz.tobytes())
+                                         for size, pose in self.chocks))
+        mesh = _PEDESTAL_MESHES.get(key)
+        if mesh is None:
+            boxes = [trimesh.creation.box(self.size_m)]
+            boxes += [trimesh.creation.box(size, transform=pose.matrix()) for size, pose in self.chocks]
+            mesh = trimesh.util.concatenate(boxes) if len(boxes) > 1 else boxes[0]
+            if len(_PEDESTAL_MESHES) >= _PEDESTAL_MESHES_KEPT:
+                _PEDESTAL_MESHES.pop(next(iter(_PEDESTAL_MESHES)))
+            _PEDESTAL_MESHES[key] = mesh
+        return mesh
+
+
+_PEDESTAL_MESHES: dict[tuple, trimesh.Trimesh] = {}
+_PEDESTAL_MESHES_KEPT = 512
 
 
 @dataclass(frozen=True)
