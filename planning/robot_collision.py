@@ -2,8 +2,9 @@
 
 Each link is the convex hull of its URDF collision mesh (slightly conservative, as in most motion planners);
 the world is a set of named convex geometries with poses (table, jig pads, kitting parts, placed parts). A
-configuration is valid when no held part and no finger touches the world, no other link comes within
-:data:`LINK_CLEARANCE_M` of it and no two non-adjacent links come within :data:`SELF_CLEARANCE_M` of each other.
+configuration is valid when no held part touches the world, no finger comes within :data:`FINGER_CLEARANCE_M` of it,
+no other link within :data:`LINK_CLEARANCE_M`, and no two non-adjacent links within :data:`SELF_CLEARANCE_M` of each
+other.
 Pure geometry: forward kinematics comes from the URDF chain of :mod:`planning.kinematics`, not from a simulator.
 
 Speed (every planner calls this thousands of times): the chain is compiled once into seven revolute joints and
@@ -58,8 +59,10 @@ _REQUEST = fcl.CollisionRequest()  # read-only; a fresh CollisionResult per call
 _DISTANCE = fcl.DistanceRequest()
 SELF_CLEARANCE_M = 0.003  # two links checked against each other must stay this far apart (PyBullet's hulls carry
 # a margin of about 1.1 mm each, so links 0.01 mm apart in this model touch in the simulator)
-LINK_CLEARANCE_M = 0.0015  # the arm's links and the hand (not the fingers) stay this far from the world, for the
-# same reason; the fingers must come close to what they grasp (the grasp planner gives them their own clearance)
+LINK_CLEARANCE_M = 0.0015  # the arm's links and the hand stay this far from the world, for the same reason
+FINGER_CLEARANCE_M = 0.0012  # the fingers this far from everything but what they grasp (which a query ignores):
+# PyBullet's finger hulls stop about 1.1 mm short of a face, so a finger passing a placed rail 0.03 mm off in
+# this model touched it in the simulator
 SEGMENT_STEP_M = 0.002  # default: no point of the robot moves more than this between checks along a segment
 _BATCH = 256  # configurations per vectorised forward-kinematics / broad-phase batch
 
@@ -220,10 +223,11 @@ class RobotCollisionChecker:
 
     def __init__(self, world_from_base: np.ndarray, obstacles: dict[str, tuple[ConvexPart, np.ndarray]],
                  urdf_path: str | None = None, self_clearance_m: float = SELF_CLEARANCE_M,
-                 link_clearance_m: float = LINK_CLEARANCE_M) -> None:
+                 link_clearance_m: float = LINK_CLEARANCE_M, finger_clearance_m: float = FINGER_CLEARANCE_M) -> None:
         self.chain = load_chain(urdf_path or panda_urdf_path())
         self.self_clearance_m = float(self_clearance_m)
         self.link_clearance_m = float(link_clearance_m)
+        self.finger_clearance_m = float(finger_clearance_m)
         self.world_from_base = np.asarray(world_from_base, dtype=np.float64)
         self.opening_m = 0.08
         self._compiled = _compile_chain(self.chain, self.opening_m)
@@ -328,8 +332,9 @@ class RobotCollisionChecker:
         self._body_objects = objects
         self._body_names = names
         self._vs_world = np.concatenate([self._links_vs_world, np.ones(len(names) - len(self._link_names), bool)])
-        self._body_pad = np.array([self.link_clearance_m if i < len(self._link_names) and n not in FINGER_LINKS
-                                   else 0.0 for i, n in enumerate(names)])
+        self._body_pad = np.array([0.0 if i >= len(self._link_names) else
+                                   self.finger_clearance_m if n in FINGER_LINKS else self.link_clearance_m
+                                   for i, n in enumerate(names)])
         self._tcp_anchor, self._anchor_from_tcp = links[TCP_LINK]
         self._pair_masks = {}
         signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)

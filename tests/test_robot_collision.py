@@ -289,7 +289,7 @@ def test_segment_spacing_bounds_how_far_any_point_moves():
 
 def test_segment_check_finds_a_thin_foil_that_a_coarse_check_misses():
     home = np.array(load_scene().robot.home_q)
-    checker = RobotCollisionChecker(np.eye(4), {})
+    checker = RobotCollisionChecker(np.eye(4), {}, finger_clearance_m=0.0)  # the fingers' exact hulls
     # a 1 x 0.3 x 1 cm foil where the left fingertip passes when joint 1 is at 0.075 rad
     at = home.copy()
     at[0] = 0.075
@@ -305,3 +305,31 @@ def test_segment_check_finds_a_thin_foil_that_a_coarse_check_misses():
     assert not checker.segment_valid(left, right)
     assert checker.segment_valid(left, right, ignore=frozenset({"foil"}))
     assert checker.segment_valid(left, left + 0.2 * (right - left))  # the part of the swing before the foil
+
+
+def test_fingers_keep_their_clearance_from_everything_they_do_not_grasp():
+    """PyBullet's finger hulls stop about 1.1 mm short of a face: a finger 0.5 mm from a rail touches it there."""
+    q = np.array(load_scene().robot.home_q)
+    exact = RobotCollisionChecker(np.eye(4), {}, finger_clearance_m=0.0)
+    world_from_tcp = exact.world_from_tcp(q)
+    # a rail beside the open left finger (TCP +y), its near face 0.5 mm outside the finger's hull
+    rail = ConvexPart.from_mesh("rail", trimesh.creation.box([0.01, 0.01, 0.01]))
+    placed = world_from_tcp.copy()
+
+    def place(offset):
+        placed[:3, 3] = world_from_tcp[:3, 3] + world_from_tcp[:3, :3] @ [0.0, offset, 0.0]
+        exact.set_obstacles({"rail": (rail, placed)})
+
+    inside, outside = 0.04, 0.15  # the rail's centre on the finger; beyond it
+    place(inside)
+    assert not exact.is_valid(q)
+    while outside - inside > 1e-6:  # where its face meets the finger's outer side
+        middle = 0.5 * (inside + outside)
+        place(middle)
+        inside, outside = (inside, middle) if exact.is_valid(q) else (middle, outside)
+    place(outside + 0.0005)
+    assert exact.is_valid(q)
+    padded = RobotCollisionChecker(np.eye(4), {"rail": (rail, placed)})
+    hit = padded.first_collision(q)
+    assert hit is not None and hit.a == "panda_leftfinger" and hit.b == "rail"
+    assert padded.is_valid(q, ignore=frozenset({"rail"}))  # what it grasps is ignored, so it may touch that
