@@ -38,7 +38,7 @@ from planning.motion import MotionSettings
 from planning.payload import mass_properties
 from planning.pose import Pose
 from planning.robot_collision import RobotCollisionChecker
-from planning.sequence import plan_assembly_sequence
+from planning.sequence import GraspChecker, plan_assembly_sequence
 
 PANDA_REACH_M = 0.855  # from the shoulder (joint 2) to the flange, fully stretched
 SHOULDER_HEIGHT_M = 0.333
@@ -336,7 +336,7 @@ class _Kit:
             self.near[name] = [n for n in order[:order.index(name)]
                                if box_distance(bounds[n], bounds[name]) < NEAR_TARGET_M]
             ranked[name] = self._hand_grasps(name, hand_check.candidates[name], self.near[name])
-        self.reach, self.ranked, self.hand_check = kit_reach, ranked, hand_check
+        self.reach, self.hand_check = kit_reach, hand_check
 
         def ok_at_target(name: str, grasp: Grasp) -> bool:
             return kit_reach.at_target(name, grasp) is not None
@@ -374,7 +374,7 @@ class _Kit:
 
 
 class _KitFailed(Exception):
-    """A :class:`_Kit` whose layout failed (``kit``: its reach checks and ranked grasps), with the error."""
+    """A :class:`_Kit` whose layout failed (``kit``: for :meth:`_Kit.blockers`), with the error."""
 
     def __init__(self, kit: _Kit, error: KittingError) -> None:
         super().__init__(str(error))
@@ -417,8 +417,6 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
         # --- kitting: a grasp that works at the pick and at the target ----------------------------------------
         on_stage("kitting")
         started = time.perf_counter()
-        from planning.sequence import GraspChecker
-
         hand_check = GraspChecker(assembly, seed)
         # the sequence checked the hand only: a part that the arm cannot place among the parts before it is
         # placed before those, and the order planned again (at most REORDERS times)
