@@ -16,6 +16,7 @@ import numpy as np
 import trimesh
 
 from cell.bullet import BulletClient
+from cell.resting import PhysicsRestCheck
 from cell.robot import IKError, IKSettings, Panda
 from cell.scene import FixtureConfig, Scene
 from cell.task import APPROACH_M, INSERTION_M, LIFT_M, CellWorld, PartTask, TaskPlan, TaskPlanningError, plan_tasks
@@ -276,15 +277,22 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
     where it ended up, and a failure names every turn tried. Planning gives up after ``time_budget_s``."""
     if not sequence.success:
         raise PlanningFailed("sequence", f"no assembly sequence: {sequence.reason}")
+    deadline = time.perf_counter() + time_budget_s
+    with PhysicsRestCheck() as rests:  # shared by the turns: a part rests on a pedestal the same anywhere
+        return _plan_turns(scene, assembly, sequence, seed, motion, progress, on_stage, deadline, rests)
+
+
+def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int,
+                motion: MotionSettings | None, progress, on_stage, deadline: float,
+                rests: PhysicsRestCheck) -> CellPlan:
     failures = []
     spent: dict[str, float] = {}
-    deadline = time.perf_counter() + time_budget_s
     for turn in JIG_TURNS_DEG:
         if failures and time.perf_counter() > deadline:
             break
         try:
             plan = _plan_with_jig(jig_turned(scene, turn), assembly, sequence, seed, motion, progress, on_stage,
-                                  deadline)
+                                  deadline, rests)
         except PlanningFailed as exc:
             failures.append((turn, exc))
             for name, value in getattr(exc, "seconds", {}).items():
@@ -312,7 +320,7 @@ class _Kit:
 
     def __init__(self, scene: Scene, assembly: Assembly, sequence: SequenceResult, panda: Panda,
                  static: list[StaticObstacle], targets: dict[str, Pose], hand_check, seed: int,
-                 deadline: float) -> None:
+                 deadline: float, rests: PhysicsRestCheck | None = None) -> None:
         world_from_assembly = scene.fixture.world_from_assembly
         order = sequence.order
         self.steps = {s.part: s for s in sequence.steps}
@@ -345,7 +353,7 @@ class _Kit:
             self.slots = plan_kitting(order, [assembly.part(n).mesh for n in order], ranked, ok_at_target,
                                       _kitting_area(scene, assembly), prefer_near_xy=world_from_assembly.position[:2],
                                       reach=kit_reach, deadline=deadline,
-                                      target_rotations={n: targets[n].rotation for n in order})
+                                      target_rotations={n: targets[n].rotation for n in order}, rests=rests)
         except KittingError as exc:
             raise _KitFailed(self, exc) from exc
 
@@ -402,7 +410,8 @@ class _PlacedBefore:
 
 
 def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int,
-                   motion: MotionSettings | None, progress, on_stage, deadline: float) -> CellPlan:
+                   motion: MotionSettings | None, progress, on_stage, deadline: float,
+                   rests: PhysicsRestCheck | None = None) -> CellPlan:
     on_stage = on_stage or (lambda name: None)
     seconds: dict[str, float] = {}
     world_from_assembly = scene.fixture.world_from_assembly
@@ -423,7 +432,7 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
         after: dict[str, frozenset[str]] = {}
         for reorder in range(REORDERS + 1):
             try:
-                kit = _Kit(scene, assembly, sequence, panda, static, targets, hand_check, seed, deadline)
+                kit = _Kit(scene, assembly, sequence, panda, static, targets, hand_check, seed, deadline, rests)
                 break
             except _KitFailed as failed:
                 exc = failed.error

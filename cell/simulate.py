@@ -62,16 +62,16 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from scipy.spatial import HalfspaceIntersection
 from scipy.spatial.transform import Rotation
 
+from cell.bodies import add_convex_body
 from cell.bullet import BulletClient
 from cell.frames import CellPictures, CellSnapshot, FrameRecorder
 from cell.program import GripperStep, MotionStep, Program
 from cell.robot import VELOCITY_LIMITS, Panda
 from cell.scene import CameraConfig
 from cell.symmetry import part_symmetry, position_error_m, rotation_error_deg
-from planning.convex import convex_pieces, mesh_key
+from planning.convex import mesh_key
 from planning.payload import DEFAULT_DENSITY_KG_M3, MassProperties, mass_properties
 from planning.pose import Pose
 from planning.robot_collision import ALLOWED_SELF_PAIRS, ARM_JOINTS
@@ -286,21 +286,6 @@ class SimulationResult:
 
 
 # --- building the cell ------------------------------------------------------------------------------------------------
-def inset(piece: trimesh.Trimesh, distance_m: float) -> trimesh.Trimesh:
-    """The convex ``piece`` with every face moved inwards by ``distance_m`` (metres; the intersection of its faces'
-    half-spaces); a piece too thin for that is returned as it is."""
-    hull = piece.convex_hull
-    if distance_m <= 0.0:
-        return hull
-    normals = np.asarray(hull.face_normals, dtype=np.float64)
-    offsets = distance_m - np.einsum("ij,ij->i", normals, hull.triangles[:, 0])  # inside: normals @ x + offsets <= 0
-    centre = np.asarray(hull.centroid, dtype=np.float64)
-    if np.max(normals @ centre + offsets) > -1e-6:
-        return hull
-    corners = HalfspaceIntersection(np.hstack([normals, offsets[:, None]]), centre).intersections
-    return trimesh.convex.convex_hull(corners)
-
-
 def grasp_offset(tcp_from_part: Pose, planned_tcp_from_part: Pose, settings: SimSettings) -> tuple[float, float, bool]:
     """How far a part lies from its planned grasp when the fingers have closed on it: (metres at the TCP, degrees
     in all, whether the closing fingers seat it there). Seated: within :attr:`SimSettings.grasp_seat_m`, turned by
@@ -312,17 +297,6 @@ def grasp_offset(tcp_from_part: Pose, planned_tcp_from_part: Pose, settings: Sim
     seated = (offset_m <= settings.grasp_seat_m and abs(float(np.degrees(turn_tcp[1]))) <= settings.grasp_seat_deg
               and offset_deg <= settings.grasp_square_deg)
     return float(offset_m), offset_deg, bool(seated)
-
-
-def _write_pieces_obj(pieces: Sequence[trimesh.Trimesh], path: Path) -> None:
-    """One OBJ object per convex piece: PyBullet loads such a file as a compound of convex hulls."""
-    lines, offset = [], 1
-    for index, piece in enumerate(pieces):
-        lines.append(f"o piece{index}")
-        lines += [f"v {x:.9f} {y:.9f} {z:.9f}" for x, y, z in piece.vertices]
-        lines += [f"f {a + offset} {b + offset} {c + offset}" for a, b, c in piece.faces]
-        offset += len(piece.vertices)
-    path.write_text("\n".join(lines) + "\n")
 
 
 class _Cell:
@@ -368,25 +342,8 @@ class _Cell:
     def _add_body(self, folder: Path, mesh: trimesh.Trimesh, world_from_body: Pose, props: MassProperties | None,
                   inset_m: float = 0.0) -> int:
         """A body of ``mesh``'s convex pieces (no visual shape: pictures come from :mod:`cell.frames`)."""
-        pb, cid = self.pb, self.cid
-        path = folder / f"{mesh_key(mesh)}-{inset_m:.6f}.obj"
-        if not path.exists():
-            _write_pieces_obj([inset(piece, inset_m) for piece in convex_pieces(mesh)], path)
-        collision = pb.createCollisionShape(pb.GEOM_MESH, fileName=str(path), physicsClientId=cid)
-        if collision < 0:
-            raise RuntimeError(f"PyBullet refused the collision pieces of a mesh of {len(mesh.faces)} faces")
-        position, orientation = world_from_body.to_pybullet()
-        inertial = {}
-        if props is not None:
-            com_position, com_orientation = props.part_from_com.to_pybullet()
-            inertial = {"baseInertialFramePosition": com_position, "baseInertialFrameOrientation": com_orientation}
-        body = pb.createMultiBody(props.mass_kg if props else 0.0, collision, -1, position, orientation,
-                                  physicsClientId=cid, **inertial)
-        dynamics = {"localInertiaDiagonal": props.inertia_kg_m2} if props else {}
-        # no collision margin: PyBullet's default pads convex hulls by about 1 mm each, so stacked parts would float
-        pb.changeDynamics(body, -1, collisionMargin=0.0, lateralFriction=self.settings.friction, physicsClientId=cid,
-                          **dynamics)
-        return body
+        return add_convex_body(self.pb, self.cid, folder, mesh, world_from_body, props, self.settings.friction,
+                               inset_m)
 
     # --- state ------------------------------------------------------------------------------------------------------
     def world_from_part(self, name: str) -> Pose:

@@ -454,7 +454,9 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
                  grasp_ok_at_target: Callable[[str, Grasp], bool], area: KittingArea,
                  prefer_near_xy: Sequence[float] = (0.5, 0.0), reach: Reach | None = None,
                  deadline: float = float("inf"),
-                 target_rotations: dict[str, np.ndarray] | None = None) -> list[KittingSlot]:
+                 target_rotations: dict[str, np.ndarray] | None = None,
+                 rests: Callable[[list[tuple[trimesh.Trimesh, Pose]], list[tuple[trimesh.Trimesh, Pose]]], bool]
+                 | None = None) -> list[KittingSlot]:
     """A slot for every part (returned in the order given), the largest footprints laid out first, each in the
     free place nearest ``prefer_near_xy`` (usually the jig). ``names`` must be in assembly order: a part is
     only an obstacle to the picks of parts assembled before it (the others are gone by then), and a board may
@@ -467,10 +469,16 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
     gives up. ``target_rotations`` (part -> world_from_part rotation at the target): each part is first tried
     lying as it sits in the assembly (where that is stable), so that the grasps that work at the target from
     above also work at the pick; then in its stable poses, most probable first.
+
+    ``rests(loose, fixed)``, when given, confirms with physics what the geometric checks judge: whether the
+    ``loose`` (mesh, world_from_part) bodies stay where they lie on the ``fixed`` (mesh, world_from_body) ones (e.g.
+    :class:`cell.resting.PhysicsRestCheck`). It is asked once per part and rest pose on its pedestal (the same
+    anywhere on the flat table) and for every stack place.
     """
     reach = reach or Reach()
     layout = _Layout(names, dict(zip(names, meshes)), area, np.asarray(prefer_near_xy, dtype=np.float64), reach)
     layout.target_rotations = dict(target_rotations or {})
+    layout.rests = rests
     needed, offered = footprint_area_m2([m for m in meshes if not _is_board(m)], area.gap_m), ring_area_m2(area)
     boards = [m for m in meshes if _is_board(m)]
     needed += footprint_area_m2(sorted(boards, key=lambda m: -np.prod(np.sort(m.extents)[1:]))[:1], area.gap_m)
@@ -514,6 +522,7 @@ class _Layout:
         self.usable_at_target: dict[tuple, bool] = {}
         self.places_cache: dict[tuple, list] = {}
         self.chocks_cache: dict[tuple, tuple | None] = {}
+        self.rests = None  # physics check (loose bodies, fixed bodies) -> bool, see plan_kitting
 
     def rank(self, name: str) -> int:
         return self.order.index(name)
@@ -626,7 +635,18 @@ class _Layout:
                     _corners(base_centre, base_long_yaw, base_half), np.full(4, top_z)]))[:, :2]
                 if not rests_stably(self.meshes[name], rest_from_part, top_rest):
                     continue
+                if self.rests is not None and not self._stack_rests(name, world_from_rest @ Pose.from_matrix(
+                        rest_from_part), stack):
+                    continue
                 yield world_from_rest, corners, None, base
+
+    def _stack_rests(self, name: str, world_from_part: Pose, stack: set[str]) -> bool:
+        """Whether ``name`` lying at ``world_from_part`` on the boards of ``stack`` stays there, and they stay on
+        theirs, under physics (:attr:`rests`)."""
+        members = [s for s in self.slots if s.part in stack]
+        loose = [(self.meshes[name], world_from_part)] + [(self.meshes[s.part], s.world_from_part) for s in members]
+        fixed = [(s.pedestal.mesh(), s.pedestal.world_from_pedestal) for s in members if s.pedestal is not None]
+        return bool(self.rests(loose, fixed + [self._table_slab(self.area.table_z_m)]))
 
     def _chocks(self, name: str, rest_from_part: np.ndarray) -> tuple | None:
         """How the part rests in this pose on its pedestal, the same anywhere: () on the pedestal alone, the
@@ -636,9 +656,21 @@ class _Layout:
             mesh = self.meshes[name]
             pedestal = pedestal_for(_rest_half(mesh, rest_from_part)[0], Pose([0, 0, 0], [1, 0, 0, 0]),
                                     self.area.pedestal_height_m)
-            self.chocks_cache[key] = () if self._supported(name, rest_from_part, pedestal) else chocks_for(
+            chocks = () if self._supported(name, rest_from_part, pedestal) else chocks_for(
                 mesh, rest_from_part, self.area.pedestal_height_m, self._top(pedestal))
+            if chocks is not None and self.rests is not None:  # and it stays there under physics
+                pedestal = dataclasses.replace(pedestal, chocks=chocks)
+                fixed = [(pedestal.mesh(), pedestal.world_from_pedestal),
+                         self._table_slab(-self.area.pedestal_height_m)]
+                if not self.rests([(mesh, Pose.from_matrix(rest_from_part))], fixed):
+                    chocks = None
+            self.chocks_cache[key] = chocks
         return self.chocks_cache[key]
+
+    @staticmethod
+    def _table_slab(top_z_m: float) -> tuple[trimesh.Trimesh, Pose]:
+        """A 2 m x 2 m table top at height ``top_z_m`` (world), for the physics check of resting parts."""
+        return trimesh.creation.box((2.0, 2.0, 0.02)), Pose([0.0, 0.0, top_z_m - 0.01], [1.0, 0.0, 0.0, 0.0])
 
     def _supported(self, name: str, rest_from_part: np.ndarray, pedestal: Pedestal) -> bool:
         return rests_stably(self.meshes[name], rest_from_part, self._top(pedestal))

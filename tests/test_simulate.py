@@ -14,6 +14,7 @@ import pytest
 import trimesh
 from PIL import Image
 
+from cell.bodies import inset
 from cell.bullet import BulletClient
 from cell.program import GripperStep, MotionStep, Program
 from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS, Panda
@@ -23,7 +24,6 @@ from cell.simulate import (
     SimSettings,
     StaticBody,
     grasp_offset,
-    inset,
     render_final,
     simulate_program,
     write_gif,

@@ -1,0 +1,122 @@
+"""Whether parts rest where the kitting layout puts them, checked with the simulation's own physics.
+
+The kitting planner (:mod:`planning.kitting`) decides from geometry whether a part rests on its pedestal (its
+contact with the support surrounds its centre of mass, with a margin for a tilt) or on the board under it. That
+is a judgement about ideal shapes; the simulation sees the parts as compounds of inset convex pieces with
+friction, and a real mesh (open, a frame of round tubes, a board with a bevelled underside) can rest in the first
+and slide or tip over in the second: a chair's side frame of tubes standing on two narrow feet between 1 cm
+chocks falls over within a second, a board stacked on a bevelled one slides off it, and later the fingers close
+on air. :class:`PhysicsRestCheck` drops the bodies where the layout puts them in a headless PyBullet client built
+as :mod:`cell.simulate` builds its cell (same bodies, friction, density, rate and gravity) and says whether every
+loose one stays put.
+
+Units: metres, seconds; poses ``world_from_*`` (world +z up) as :class:`planning.pose.Pose`.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from cell.bodies import add_convex_body
+from cell.bullet import BulletClient
+from cell.simulate import SimSettings
+from planning.convex import mesh_key
+from planning.payload import MassProperties, mass_properties
+from planning.pose import Pose
+
+REST_CHECK_S = 1.5
+"""Simulated seconds the bodies are left alone (the program's first pick may come this late after settling)."""
+REST_MOTION_M = 0.002
+"""A corner of a loose body's bounding box moving farther than this (metres) in that time: it does not rest."""
+REST_SPEED_M_S = 0.004
+"""... nor one whose centre still moves faster than this at the end (a slow creep off its support)."""
+
+Body = tuple[trimesh.Trimesh, Pose]
+
+
+class PhysicsRestCheck:
+    """``check(loose, fixed)``: whether every ``loose`` (mesh, world_from_part) stays where it is, within
+    :data:`REST_MOTION_M` over :data:`REST_CHECK_S`, among the ``fixed`` (mesh, world_from_body) bodies (pedestals,
+    the table) under gravity. One headless client is reused for every check; close it (or use ``with``)."""
+
+    def __init__(self, settings: SimSettings | None = None, duration_s: float = REST_CHECK_S,
+                 tolerance_m: float = REST_MOTION_M, speed_m_s: float = REST_SPEED_M_S) -> None:
+        self.settings = settings or SimSettings()
+        self.duration_s, self.tolerance_m, self.speed_m_s = duration_s, tolerance_m, speed_m_s
+        self._client: BulletClient | None = None
+        self._folder = tempfile.TemporaryDirectory(prefix="image-assembly-rest-")
+        self._props: dict[str, MassProperties] = {}
+        self.checks = 0  # how many simulations ran (for profiling and tests)
+        self._answers: dict[tuple, bool] = {}  # the same bodies at the same poses: the same answer
+        self._keys: dict[int, tuple[trimesh.Trimesh, str]] = {}  # id(mesh) -> (mesh, mesh_key): hashing is slow
+
+    def __call__(self, loose: Sequence[Body], fixed: Sequence[Body]) -> bool:
+        return self.check(loose, fixed)
+
+    def check(self, loose: Sequence[Body], fixed: Sequence[Body]) -> bool:
+        key = tuple((self._mesh_key(mesh), np.round(pose.matrix(), 6).tobytes()) for mesh, pose in (*loose, *fixed))
+        key = (len(loose), key)
+        if key not in self._answers:
+            self._answers[key] = self._simulate(loose, fixed)
+        return self._answers[key]
+
+    def _mesh_key(self, mesh: trimesh.Trimesh) -> str:
+        cached = self._keys.get(id(mesh))
+        if cached is None or cached[0] is not mesh:
+            cached = self._keys[id(mesh)] = (mesh, mesh_key(mesh))
+        return cached[1]
+
+    def _simulate(self, loose: Sequence[Body], fixed: Sequence[Body]) -> bool:
+        if self._client is None:
+            self._client = BulletClient()
+        pb, cid, settings = self._client.pb, self._client.client_id, self.settings
+        self.checks += 1
+        pb.resetSimulation(physicsClientId=cid)
+        pb.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
+        pb.setTimeStep(1.0 / settings.rate_hz, physicsClientId=cid)
+        folder = Path(self._folder.name)
+        for mesh, world_from_body in fixed:
+            add_convex_body(pb, cid, folder, mesh, world_from_body, None, settings.friction)
+        bodies, corners = [], []
+        for mesh, world_from_part in loose:
+            key = self._mesh_key(mesh)
+            if key not in self._props:
+                self._props[key] = mass_properties(mesh, settings.density_kg_m3)
+            props = self._props[key]
+            body = add_convex_body(pb, cid, folder, mesh, world_from_part, props, settings.friction,
+                                   inset_m=0.5 * settings.joint_clearance_m)
+            # the box's corners in the centre-of-mass frame PyBullet reports
+            box = trimesh.bounds.corners(mesh.bounds)
+            bodies.append(body)
+            corners.append(props.part_from_com.inverse().apply(box))
+        start = [self._corners_now(body, local) for body, local in zip(bodies, corners)]
+        for _ in range(int(round(self.duration_s * settings.rate_hz))):
+            pb.stepSimulation(physicsClientId=cid)
+        for body, local, before in zip(bodies, corners, start):
+            moved = np.linalg.norm(self._corners_now(body, local) - before, axis=1).max()
+            speed = np.linalg.norm(pb.getBaseVelocity(body, physicsClientId=cid)[0])
+            if not (moved <= self.tolerance_m and speed <= self.speed_m_s):
+                return False
+        return True
+
+    def _corners_now(self, body: int, com_corners: np.ndarray) -> np.ndarray:
+        position, orientation = self._client.pb.getBasePositionAndOrientation(body,
+                                                                              physicsClientId=self._client.client_id)
+        return Pose.from_pybullet(position, orientation).apply(com_corners)
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+        self._folder.cleanup()
+
+    def __enter__(self) -> PhysicsRestCheck:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
