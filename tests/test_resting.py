@@ -1,0 +1,100 @@
+"""The physics check of resting parts (cell.resting) and its use by the kitting layout."""
+
+import dataclasses
+
+import numpy as np
+import trimesh
+
+from cell.resting import PhysicsRestCheck
+from planning.kitting import _rest_half, chocks_for, pedestal_for, rests_stably, upright_rest_pose
+from planning.pose import Pose
+
+PEDESTAL_HEIGHT_M = 0.12
+IDENTITY = Pose([0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0])
+
+
+def _frame(height_m: float) -> trimesh.Trimesh:
+    """A flat frame in the x-z plane, 1 cm thick: two posts (3 cm along x) 20 cm apart and a bar across their tops."""
+    posts = [trimesh.creation.box((0.03, 0.01, height_m), transform=trimesh.transformations.translation_matrix(
+        (x, 0.0, height_m / 2))) for x in (-0.1, 0.1)]
+    bar = trimesh.creation.box((0.21, 0.01, 0.01), transform=trimesh.transformations.translation_matrix(
+        (0.0, 0.0, height_m - 0.005)))
+    return trimesh.util.concatenate(posts + [bar])
+
+
+def _on_pedestal(mesh: trimesh.Trimesh):
+    """The part standing as modelled (upright), its pedestal as kitting makes it (with chocks where it would
+    roll), and what the geometric checks say: (loose, fixed, rests geometrically, chocks)."""
+    rest = upright_rest_pose(mesh, np.eye(3))
+    pedestal = pedestal_for(_rest_half(mesh, rest)[0], IDENTITY, PEDESTAL_HEIGHT_M)
+    top = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * 0.5 * np.array(pedestal.size_m[:2])
+    stable = rests_stably(mesh, rest, top)
+    chocks = () if stable else chocks_for(mesh, rest, PEDESTAL_HEIGHT_M, top)
+    pedestal = dataclasses.replace(pedestal, chocks=chocks or ())
+    table = (trimesh.creation.box((2.0, 2.0, 0.02)), Pose([0.0, 0.0, -PEDESTAL_HEIGHT_M - 0.01], [1, 0, 0, 0]))
+    return [(mesh, Pose.from_matrix(rest))], [(pedestal.mesh(), pedestal.world_from_pedestal), table], stable, chocks
+
+
+def test_a_box_rests_on_its_pedestal_and_the_answer_is_remembered():
+    loose, fixed, stable, _ = _on_pedestal(trimesh.creation.box((0.2, 0.1, 0.03)))
+    assert stable
+    with PhysicsRestCheck() as check:
+        assert check(loose, fixed)
+        assert check(loose, fixed)
+        assert check.checks == 1  # the same bodies at the same poses: simulated once
+
+
+def test_a_tall_frame_between_chocks_falls_over():
+    # the geometry says chocks hold it (a chair's side frame of tubes standing on two feet); physics says no
+    loose, fixed, stable, chocks = _on_pedestal(_frame(0.25))
+    assert not stable and chocks
+    with PhysicsRestCheck() as check:
+        assert not check(loose, fixed)
+
+
+def test_a_frame_whose_feet_miss_the_pedestal_does_not_rest():
+    # the pedestal is inset from the footprint's ends for the fingers; the feet lie beyond it and only touch its
+    # edge, which the geometric check counts as support
+    loose, fixed, stable, _ = _on_pedestal(_frame(0.03))
+    assert stable
+    with PhysicsRestCheck() as check:
+        assert not check(loose, fixed)
+
+
+def test_a_stacked_board_rests_when_centred_and_slides_off_when_overhanging():
+    lower, upper = trimesh.creation.box((0.3, 0.2, 0.018)), trimesh.creation.box((0.25, 0.15, 0.018))
+    pedestal = (trimesh.creation.box((0.24, 0.14, PEDESTAL_HEIGHT_M)),
+                Pose([0.0, 0.0, -PEDESTAL_HEIGHT_M / 2], [1.0, 0.0, 0.0, 0.0]))
+    on_pedestal = (lower, Pose([0.0, 0.0, 0.009], [1.0, 0.0, 0.0, 0.0]))
+    with PhysicsRestCheck() as check:
+        assert check([(upper, Pose([0.0, 0.0, 0.027], [1, 0, 0, 0])), on_pedestal], [pedestal])
+        # its centre 2 cm beyond the lower board's edge: it tips off
+        assert not check([(upper, Pose([0.17, 0.0, 0.027], [1, 0, 0, 0])), on_pedestal], [pedestal])
+
+
+def test_kitting_never_stands_a_frame_where_physics_says_it_falls():
+    from planning.grasp import antipodal_grasps
+    from planning.kitting import KittingArea, plan_kitting
+
+    frame = _frame(0.25)
+    area = KittingArea(centre_xy=(0.0, 0.0), inner_radius_m=0.32, outer_radius_m=0.72, table_min_xy=(-0.55, -0.8),
+                       table_max_xy=(0.95, 0.8), table_z_m=0.0, pedestal_height_m=PEDESTAL_HEIGHT_M,
+                       keep_out=(((0.25, -0.25), (0.75, 0.25)),), gap_m=0.06)
+    # grasps approaching along the frame's -z (from above where it stands upright): kitting tries the upright pose
+    # first, where they all pick from above
+    grasps = [g for g in antipodal_grasps(frame, np.random.default_rng(0)) if g.part_from_tcp.rotation[2, 2] < -0.9]
+    assert grasps
+
+    def from_above_at_target(name, grasp):  # the target takes grasps approaching straight down (the part upright)
+        return grasp.part_from_tcp.rotation[2, 2] < -0.9
+
+    kwargs = dict(target_rotations={"frame": np.eye(3)})  # first tried standing as it sits in its assembly
+    standing = plan_kitting(["frame"], [frame], {"frame": grasps}, from_above_at_target, area, **kwargs)[0]
+    assert standing.world_from_part.rotation[2, 2] > 0.99 and standing.pedestal.chocks  # upright between chocks
+    with PhysicsRestCheck() as check:
+        slot = plan_kitting(["frame"], [frame], {"frame": grasps}, from_above_at_target, area, rests=check,
+                            **kwargs)[0]
+        assert slot.world_from_part.rotation[2, 2] < 0.99  # not upright: in another pose where it rests
+        table = (trimesh.creation.box((4.0, 4.0, 0.02)), Pose([0, 0, -0.01], [1, 0, 0, 0]))
+        assert check([(frame, slot.world_from_part)], [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal),
+                                                       table])
