@@ -29,6 +29,7 @@ from planning.gripper import clearance_gripper
 from planning.kitting import (
     HAND_CLEARANCE_M,
     NO_GRASP_AT_TARGET,
+    NO_PLACE,
     KittingArea,
     KittingError,
     KittingSlot,
@@ -36,7 +37,13 @@ from planning.kitting import (
     plan_kitting,
 )
 from planning.motion import MotionSettings
-from planning.payload import mass_properties
+from planning.payload import (
+    HOLDING_TORQUE_FRACTION,
+    PANDA_TORQUE_LIMITS_NM,
+    HoldingTorques,
+    MassProperties,
+    mass_properties,
+)
 from planning.pose import Pose
 from planning.robot_collision import RobotCollisionChecker
 from planning.sequence import GraspChecker, plan_assembly_sequence
@@ -131,8 +138,9 @@ class _KitReach(Reach):
 
     def __init__(self, panda: Panda, scene: Scene, rng: np.random.Generator, home_q: np.ndarray,
                  targets: dict[str, Pose], meshes: dict[str, trimesh.Trimesh], order: list[str],
-                 insertion: dict[str, np.ndarray]) -> None:
+                 insertion: dict[str, np.ndarray], payloads: dict[str, MassProperties] | None = None) -> None:
         self.panda, self.rng, self.home_q = panda, rng, home_q
+        self.payloads = dict(payloads or {})  # a held part's weight must be held at its configurations too
         self.targets, self.meshes, self.order, self.insertion = targets, meshes, order, insertion
         self.checker = RobotCollisionChecker(scene.robot.world_from_base.matrix(), {})
         table = _table(scene)
@@ -141,6 +149,8 @@ class _KitReach(Reach):
         self.settings = IKSettings(restarts=4)
         self.shoulder = scene.robot.world_from_base.apply(np.array([[0.0, 0.0, SHOULDER_HEIGHT_M]]))[0]
         self.at_target_cache: dict[tuple[str, int], tuple | None] = {}
+        self.too_heavy = 0  # arm configurations refused only because they could not hold the part's weight
+        self.heavy_parts: dict[str, int] = {}  # part -> how many of its grasps failed at the target for its weight
 
     def _world(self, kit: list[tuple[trimesh.Trimesh, Pose]], jig_parts: list[str]) -> dict:
         out = dict(self.table)
@@ -159,9 +169,12 @@ class _KitReach(Reach):
             self._convex[id(mesh)] = entry
         return entry[1]
 
-    def _chain(self, poses: list[Pose], seed: np.ndarray | None, checks: list[frozenset[str]] | None):
-        """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its set (no collision
-        check when ``checks`` is None), or None."""
+    def _chain(self, poses: list[Pose], seed: np.ndarray | None,
+               checks: list[tuple[frozenset[str], frozenset[str]]] | None,
+               load: HoldingTorques | None = None, held: tuple[bool, ...] = ()):
+        """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its (ignore, hand_ignore)
+        sets (see :meth:`RobotCollisionChecker.first_invalid`; no collision check when ``checks`` is None) and,
+        where ``held``, holding the ``load``; or None."""
         if not all(self._within_reach(pose) for pose in poses):
             return None
         for attempt in range(3):
@@ -173,8 +186,12 @@ class _KitReach(Reach):
                     configurations.append(previous)
             except IKError:
                 continue
-            if checks is None or all(self.checker.is_valid(q, ignore=ignore)
-                                     for q, ignore in zip(configurations, checks)):
+            free = checks is None or all(self.checker.is_valid(q, ignore=ignore, hand_ignore=hand_ignore)
+                                         for q, (ignore, hand_ignore) in zip(configurations, checks))
+            if load is not None and not all(load.within(q[None])[0] for q, h in zip(configurations, held) if h):
+                self.too_heavy += int(free)  # it would have worked, but for the part's weight
+                continue
+            if free:
                 return configurations
         return None
 
@@ -197,17 +214,32 @@ class _KitReach(Reach):
         return [tcp, pre, retreat]
 
     # release: the arm and the opened fingers clear the neighbours the part touches (the part's own contacts are
-    # planned; the fingers around it were checked by the grasp planner); pre-place: the part is in the hand, not
-    # at its target; end of the retreat: clear of everything, the released part included
-    _AT_TARGET_IGNORES = (frozenset({SELF}), frozenset({SELF}), frozenset())
+    # planned; the hand around it was checked by the grasp planner, the arm's links must clear it); pre-place: the
+    # part is in the hand, not at its target; end of the retreat: clear of everything, the released part included
+    _AT_TARGET_IGNORES = ((frozenset(), frozenset({SELF})), (frozenset({SELF}), frozenset()),
+                          (frozenset(), frozenset()))
 
     def at_target(self, part: str, grasp: Grasp) -> tuple | None:
         key = (part, id(grasp))
         if key not in self.at_target_cache:
+            refused = self.too_heavy
             poses = self._at_target_world(part, grasp)
-            found = self._chain(poses, self.home_q, list(self._AT_TARGET_IGNORES))
+            # the part is in the hand at the release and the pre-place, not at the retreat's end
+            found = self._chain(poses, self.home_q, list(self._AT_TARGET_IGNORES), self._load(part, grasp),
+                                (True, True, False))
             self.at_target_cache[key] = None if found is None else tuple(found)
+            if found is None and self.too_heavy > refused:
+                self.heavy_parts[part] = self.heavy_parts.get(part, 0) + 1
         return self.at_target_cache[key]
+
+    def weight_words(self, part: str) -> str:
+        """Why ``part``'s grasps failed at its target for its weight, in words ("" when none did)."""
+        count = self.heavy_parts.get(part, 0)
+        if not count or part not in self.payloads:
+            return ""
+        return (f"; at {count} of its grasps the arm could not hold its {self.payloads[part].mass_kg:.1f} kg there "
+                f"(gravity alone needs more than {HOLDING_TORQUE_FRACTION:.0%} of a joint's torque limit, "
+                f"{PANDA_TORQUE_LIMITS_NM[-1]:.0f} N m at the wrist)")
 
     def arm_meets(self, part: str, grasp: Grasp) -> set[str] | None:
         """The parts on the jig that the arm (hand open, the part released) meets at ``grasp``'s release, pre-place
@@ -218,7 +250,7 @@ class _KitReach(Reach):
             return None
         met: set[str] = set()
         for q, ignore in zip(found, self._AT_TARGET_IGNORES):
-            while (hit := self.checker.first_collision(q, ignore=ignore | met)) is not None:
+            while (hit := self.checker.first_collision(q, ignore=ignore[0] | met, hand_ignore=ignore[1])) is not None:
                 if hit.b not in self.meshes or hit.b == part:
                     return None
                 met.add(hit.b)
@@ -237,10 +269,17 @@ class _KitReach(Reach):
         world[SELF] = (self._convex_part(self.meshes[part]), world_from_part.matrix())
         self.checker.set_obstacles(world)
         self.checker.hold(None, opening_m=grasp.opening_m)
-        # grasp: the fingers around the part were checked by the grasp planner; pre-grasp: clear of the part;
-        # lifted: the part is in the hand
-        found = self._chain([tcp, pre, lifted], self.home_q, [frozenset({SELF}), frozenset(), frozenset({SELF})])
+        # grasp: the hand around the part was checked by the grasp planner (the arm's links must clear it);
+        # pre-grasp: clear of the part; lifted: the part is in the hand
+        none, hand_only = (frozenset(), frozenset()), (frozenset(), frozenset({SELF}))
+        found = self._chain([tcp, pre, lifted], self.home_q, [hand_only, none, (frozenset({SELF}), frozenset())],
+                            self._load(part, grasp), (True, False, True))
         return None if found is None else (tuple(found), target, grasp.opening_m)
+
+    def _load(self, part: str, grasp: Grasp) -> HoldingTorques | None:
+        """The arm's static torques holding ``part`` at ``grasp`` (None when its mass is not known)."""
+        payload = self.payloads.get(part)
+        return None if payload is None else HoldingTorques(self.checker, payload, grasp.part_from_tcp.inverse())
 
     def still_clear(self, reach, obstacles) -> bool:
         """Whether the arm configurations of ``reach`` (at the pick and at the target) touch neither the table nor
@@ -320,7 +359,8 @@ class _Kit:
 
     def __init__(self, scene: Scene, assembly: Assembly, sequence: SequenceResult, panda: Panda,
                  static: list[StaticObstacle], targets: dict[str, Pose], hand_check, seed: int,
-                 deadline: float, rests: PhysicsRestCheck | None = None) -> None:
+                 deadline: float, rests: PhysicsRestCheck | None = None,
+                 payloads: dict[str, MassProperties] | None = None) -> None:
         world_from_assembly = scene.fixture.world_from_assembly
         order = sequence.order
         self.steps = {s.part: s for s in sequence.steps}
@@ -336,7 +376,7 @@ class _Kit:
             self.touches[name] = tuple(touching + ([pads_under[name]] if name in pads_under else []))
         home_q = np.array(scene.robot.home_q)
         kit_reach = _KitReach(panda, scene, np.random.default_rng([seed, 3]), home_q, targets,
-                              {p.name: p.mesh for p in assembly.parts}, order, self.insertion)
+                              {p.name: p.mesh for p in assembly.parts}, order, self.insertion, payloads)
         ranked: dict[str, list[Grasp]] = {}
         bounds = {p.name: world_bounds(p.mesh, targets[p.name]) for p in assembly.parts}
         self.near: dict[str, list[str]] = {}
@@ -355,6 +395,9 @@ class _Kit:
                                       reach=kit_reach, deadline=deadline,
                                       target_rotations={n: targets[n].rotation for n in order}, rests=rests)
         except KittingError as exc:
+            words = kit_reach.weight_words(exc.part) if exc.part else ""
+            if words and exc.kind in (NO_GRASP_AT_TARGET, NO_PLACE):
+                exc = KittingError(str(exc) + words, exc.kind, exc.part)
             raise _KitFailed(self, exc) from exc
 
     def _hand_grasps(self, name: str, grasps: list[Grasp], present: list[str]) -> list[Grasp]:
@@ -432,7 +475,8 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
         after: dict[str, frozenset[str]] = {}
         for reorder in range(REORDERS + 1):
             try:
-                kit = _Kit(scene, assembly, sequence, panda, static, targets, hand_check, seed, deadline, rests)
+                kit = _Kit(scene, assembly, sequence, panda, static, targets, hand_check, seed, deadline, rests,
+                           payloads)
                 break
             except _KitFailed as failed:
                 exc = failed.error
@@ -471,7 +515,7 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
                                       slot.rests_on or f"pedestal {slot.part}", reach[0][0], reach[1][0],
                                       payloads[slot.part]))
             world = CellWorld(panda, scene.robot.world_from_base, convex_static, convex_parts,
-                              np.random.default_rng([seed, 2, attempt]), motion or MotionSettings())
+                              np.random.default_rng([seed, 2, attempt]), motion or MotionSettings(), payloads)
             try:
                 task_plan = plan_tasks(world, tasks, home_q, progress=progress, deadline=deadline)
                 timing_seconds += world.timing_seconds

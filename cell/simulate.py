@@ -72,27 +72,20 @@ from cell.robot import VELOCITY_LIMITS, Panda
 from cell.scene import CameraConfig
 from cell.symmetry import part_symmetry, position_error_m, rotation_error_deg
 from planning.convex import mesh_key
-from planning.payload import DEFAULT_DENSITY_KG_M3, MassProperties, mass_properties
+from planning.payload import (
+    DEFAULT_DENSITY_KG_M3,
+    PANDA_LINK_DYNAMICS,
+    PANDA_TORQUE_LIMITS_NM,
+    MassProperties,
+    mass_properties,
+)
 from planning.pose import Pose
 from planning.robot_collision import ALLOWED_SELF_PAIRS, ARM_JOINTS
 
 FIXTURE = "fixture"  # the name in ``fasten_to`` that stands for the jig (the static bodies under the target)
 MIN_RATE_HZ = 240.0
-ARM_TORQUE_LIMITS_NM = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)  # Franka's published joint torque limits
-# Link masses (kg) and principal inertias (kg m^2) identified by Gaz et al. (RA-L 2019); the inertias in pybullet_data's
-# URDF (0.1 kg m^2 for every link) are placeholders that the wrist's 12 Nm cannot accelerate as the real arm does.
-LINK_DYNAMICS = {
-    "panda_link1": (4.970684, (0.70337, 0.70661, 0.009117)),
-    "panda_link2": (0.646926, (0.007962, 0.02811, 0.025995)),
-    "panda_link3": (3.228604, (0.037242, 0.036155, 0.01083)),
-    "panda_link4": (3.587895, (0.025853, 0.019552, 0.028323)),
-    "panda_link5": (1.225946, (0.035549, 0.029474, 0.008627)),
-    "panda_link6": (1.666555, (0.001964, 0.004354, 0.005433)),
-    "panda_link7": (0.735522, (0.012516, 0.010027, 0.004815)),
-    "panda_hand": (0.73, (0.001, 0.0025, 0.0017)),
-    "panda_leftfinger": (0.015, (2.375e-6, 2.375e-6, 7.5e-7)),
-    "panda_rightfinger": (0.015, (2.375e-6, 2.375e-6, 7.5e-7)),
-}
+ARM_TORQUE_LIMITS_NM = PANDA_TORQUE_LIMITS_NM  # Franka's published joint torque limits
+LINK_DYNAMICS = PANDA_LINK_DYNAMICS  # identified link masses and inertias (planning/payload.py)
 ROBOT = "robot"
 EVENT_GAP_S = 0.1  # contacts of the same pair (limit breaches of the same joint) closer in time form one event
 DEFAULT_CAMERA = CameraConfig(eye=(1.3, -0.9, 0.9), target=(0.45, 0.1, 0.2), fov_deg=50.0, width_px=320,

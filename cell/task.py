@@ -39,7 +39,7 @@ from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS, IKErro
 from planning.collision import ConvexPart, shrunk, signed_distance
 from planning.grasp import Grasp
 from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path, straight_line_valid
-from planning.payload import MassProperties, carry_limits
+from planning.payload import HoldingTorques, MassProperties, carry_limits
 from planning.pose import Pose
 from planning.robot_collision import RobotCollisionChecker
 from planning.timing import JointLimits, time_path
@@ -53,6 +53,7 @@ MAX_JOINT_STEP_RAD = 0.35  # larger jumps between neighbouring straight-line sol
 HELD_MARGIN_M = 0.002  # the held part is checked pulled in by this much, so it may slide along faces it touches
 SQUEEZE_M = 0.004  # the closing command asks for this much less than the part's width (force closure)
 DENSE_CHECK_RAD = 0.004  # joint step of the re-check of planned paths
+TORQUE_CHECK_RAD = 0.05  # joint step of the holding-torque check along a segment (the torques vary slowly)
 IK_ATTEMPTS = 6  # IK solutions tried (each with restarts) for a collision-free contact configuration
 JOINT_LIMIT_MARGIN_RAD = 0.01  # configurations keep this from the joint limits (timed motions must not touch them)
 CARRY_CLEARANCE_M = 0.002  # the carried part is grown by this much on its way to the target ...
@@ -116,8 +117,10 @@ class CellWorld:
 
     def __init__(self, panda: Panda, world_from_base: Pose, static: dict[str, tuple[ConvexPart, Pose]],
                  parts: dict[str, ConvexPart], rng: np.random.Generator,
-                 motion: MotionSettings | None = None) -> None:
+                 motion: MotionSettings | None = None, payloads: dict[str, MassProperties] | None = None) -> None:
         self.panda = panda
+        self.payloads = dict(payloads or {})  # part -> its mass properties: held, its weight must be held too
+        self._load: HoldingTorques | None = None
         self.static = static
         self.parts = parts
         self.rng = rng
@@ -148,11 +151,13 @@ class CellWorld:
         return self._grown_cache[key]
 
     def validity(self, ignore: frozenset[str] = frozenset(), transit: bool = False,
-                 held_ignore: frozenset[str] = frozenset()):
-        """``q -> bool`` against the current world, skipping the obstacles named in ``ignore``, and for the held
-        part only those in ``held_ignore`` (the robot must still clear them); ``transit``: with every obstacle
-        grown by :data:`TRANSIT_CLEARANCE_M`."""
-        return _Validity(self.transit_checker if transit else self.checker, ignore, held_ignore)
+                 held_ignore: frozenset[str] = frozenset(), hand_ignore: frozenset[str] = frozenset()):
+        """``q -> bool`` against the current world, skipping the obstacles named in ``ignore``, for the held part
+        only those in ``held_ignore`` (the robot must still clear them), and for the hand, fingers and held part
+        those in ``hand_ignore`` (the arm's links must still clear them); ``transit``: with every obstacle grown
+        by :data:`TRANSIT_CLEARANCE_M`. While a part is held, a configuration must also hold its weight."""
+        return _Validity(self.transit_checker if transit else self.checker, ignore, held_ignore, self._load,
+                         hand_ignore)
 
     def hold(self, part: str | None, grasp: Grasp | None, opening_m: float,
              margin_m: float = HELD_MARGIN_M) -> None:
@@ -164,6 +169,9 @@ class CellWorld:
             else:
                 held = shrunk(self.parts[part], margin_m)
                 checker.hold(held, grasp.part_from_tcp.inverse().matrix(), opening_m=opening_m)
+        self._load = None
+        if part is not None and part in self.payloads:
+            self._load = HoldingTorques(self.checker, self.payloads[part], grasp.part_from_tcp.inverse())
 
     # --- kinematics -------------------------------------------------------------------------------------------
     def solve_ik(self, world_from_tcp: Pose, seed_q: np.ndarray, valid, part: str, stage: str,
@@ -191,7 +199,7 @@ class CellWorld:
         if collided:
             raise TaskPlanningError("goal_in_collision", part, stage,
                                     f"every inverse-kinematics solution for the TCP at {world_from_tcp} collides "
-                                    f"(first: {collided})")
+                                    f"or cannot hold the part (first: {collided})")
         raise TaskPlanningError("no_ik", part, stage, last_error)
 
     def straight_line(self, q_contact: np.ndarray, world_from_tcp_contact: Pose, offset_world: np.ndarray,
@@ -253,9 +261,14 @@ class CellWorld:
     def _collision_words(self, q: np.ndarray, valid=None) -> str:
         """The first collision at ``q`` as ``valid`` (a :class:`_Validity`) sees it: its checker, skipping what it
         ignores; the exact world when ``valid`` is something else."""
-        checker, ignore, held_ignore = ((valid.checker, valid.ignore, valid.held_ignore)
-                                        if isinstance(valid, _Validity) else (self.checker, frozenset(), frozenset()))
-        hit = checker.first_collision(np.asarray(q, dtype=np.float64), ignore=ignore, held_ignore=held_ignore)
+        checker, ignore, held_ignore, hand_ignore = (
+            (valid.checker, valid.ignore, valid.held_ignore, valid.hand_ignore) if isinstance(valid, _Validity)
+            else (self.checker, frozenset(), frozenset(), frozenset()))
+        load = valid.load if isinstance(valid, _Validity) else None
+        if load is not None and not load.within(np.asarray(q, dtype=np.float64)[None])[0]:
+            return load.words(q)
+        hit = checker.first_collision(np.asarray(q, dtype=np.float64), ignore=ignore, held_ignore=held_ignore,
+                                      hand_ignore=hand_ignore)
         return "no collision at its end" if hit is None else str(hit)
 
     def transit(self, start_q: np.ndarray, goal_q: np.ndarray, valid, part: str, stage: str) -> np.ndarray:
@@ -296,36 +309,52 @@ class _Validity:
     than 2 mm between checks)."""
 
     def __init__(self, checker: RobotCollisionChecker, ignore: frozenset[str],
-                 held_ignore: frozenset[str] = frozenset()) -> None:
+                 held_ignore: frozenset[str] = frozenset(), load: HoldingTorques | None = None,
+                 hand_ignore: frozenset[str] = frozenset()) -> None:
         self.checker, self.ignore, self.held_ignore = checker, frozenset(ignore), frozenset(held_ignore)
+        self.hand_ignore = frozenset(hand_ignore)
+        self.load = load  # the held part's weight: a configuration must also hold it (HoldingTorques.within)
 
     def __call__(self, q) -> bool:
-        return self.checker.is_valid(np.asarray(q, dtype=np.float64), ignore=self.ignore,
-                                     held_ignore=self.held_ignore)
+        q = np.asarray(q, dtype=np.float64)
+        return (self.load is None or bool(self.load.within(q[None])[0])) and self.checker.is_valid(
+            q, ignore=self.ignore, held_ignore=self.held_ignore, hand_ignore=self.hand_ignore)
 
     def segment(self, q_from, q_to) -> bool:
-        return self.checker.segment_valid(np.asarray(q_from, dtype=np.float64), np.asarray(q_to, dtype=np.float64),
-                                          ignore=self.ignore, held_ignore=self.held_ignore)
+        q_from, q_to = np.asarray(q_from, dtype=np.float64), np.asarray(q_to, dtype=np.float64)
+        if self.load is not None:
+            steps = max(1, int(np.ceil(float(np.max(np.abs(q_to - q_from))) / TORQUE_CHECK_RAD)))
+            if not np.all(self.load.within(q_from + (q_to - q_from) * (np.arange(steps + 1) / steps)[:, None])):
+                return False
+        return self.checker.segment_valid(q_from, q_to, ignore=self.ignore, held_ignore=self.held_ignore,
+                                          hand_ignore=self.hand_ignore)
 
     def first_invalid(self, qs) -> int | None:
         """Index of the first invalid configuration of ``qs`` (N, 7), or None: the same answers as calling this
         object on each, with forward kinematics and the broad phase batched."""
-        return self.checker.first_invalid(np.asarray(qs, dtype=np.float64), ignore=self.ignore,
-                                          held_ignore=self.held_ignore)
+        qs = np.asarray(qs, dtype=np.float64)
+        end = len(qs)
+        if self.load is not None:
+            heavy = np.flatnonzero(~self.load.within(qs))
+            end = int(heavy[0]) if len(heavy) else end
+        found = self.checker.first_invalid(qs[:end], ignore=self.ignore, held_ignore=self.held_ignore,
+                                           hand_ignore=self.hand_ignore)
+        return found if found is not None else (end if end < len(qs) else None)
 
 
 def _approach_to_pick(world: CellWorld, task: PartTask, q: np.ndarray):
     """(grasp configuration, straight approach path ending there, the validity they were checked with) for
     ``task``'s pick. The arm keeps :data:`TRANSIT_CLEARANCE_M` from the neighbouring kitting parts where it can (a
     link passing a neighbour board 0.1 mm off in this model touches it in the simulator), else it comes as close
-    as the exact check allows. The part and its pedestal are not checked: the grasp planner checked the hand
-    against them."""
-    name, ignore = task.part, frozenset({task.part, task.pedestal})
+    as the exact check allows. The hand is not checked against the part and its pedestal (the grasp planner
+    checked it against them); the arm's links are (a wrist passing low over a table top knocked it off its
+    pedestal)."""
+    name, beside = task.part, frozenset({task.part, task.pedestal})
     tcp_pick = task.world_from_pick @ task.grasp.part_from_tcp
     back = -tcp_pick.rotation[:, 2] * APPROACH_M
     failure = None  # the exact check's, when both fail
     for transit in (True, False):
-        valid = world.validity(ignore, transit=transit)
+        valid = world.validity(transit=transit, hand_ignore=beside)
         try:
             grasp_q = world.solve_ik(tcp_pick, q, valid, name, "grasp at the pick", hint_q=task.pick_q_hint)
             approach = world.straight_line(grasp_q, tcp_pick, back, valid, name, "approach to the pick")[::-1]
@@ -435,7 +464,7 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         del poses[name]
         world.set_part_poses(poses)
         world.hold(name, grasp, grasp.width_m)
-        valid = world.validity(frozenset({task.pedestal}))
+        valid = world.validity(hand_ignore=frozenset({task.pedestal}))
         lift = world.straight_line(grasp_q, tcp_pick, np.array([0.0, 0.0, LIFT_M]), valid, name, "lift")
         add_motion(name, "lift", lift, valid, name, carrying)
         tcp_place = task.world_from_target @ grasp.part_from_tcp
@@ -474,7 +503,7 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         poses[name] = task.world_from_target
         world.set_part_poses(poses)
         world.hold(None, None, grasp.opening_m)
-        valid = world.validity(frozenset({name}))
+        valid = world.validity(hand_ignore=frozenset({name}))
         retreat = world.straight_line(place_q, tcp_place, -tcp_place.rotation[:, 2] * APPROACH_M, valid, name,
                                       "retreat")
         add_motion(name, "retreat", retreat, valid, None)

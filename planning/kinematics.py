@@ -59,6 +59,7 @@ class Chain:
     root: str
     joints: list[Joint]
     collision: dict[str, list[tuple[trimesh.Trimesh, np.ndarray]]] = field(default_factory=dict)  # link_from_mesh
+    centre_of_mass: dict[str, np.ndarray] = field(default_factory=dict)  # link frame, metres (the URDF's inertial)
 
     def joint(self, name: str) -> Joint:
         for j in self.joints:
@@ -129,4 +130,10 @@ def load_chain(urdf_path: str) -> Chain:
                 filename = filename[len("package://"):]
             mesh = _load_mesh(os.path.join(folder, filename))
             collision.setdefault(link.get("name"), []).append((mesh, _origin(element.find("origin"))))
-    return Chain(root, ordered, collision)
+    centre_of_mass = {}
+    for link in robot.findall("link"):
+        origin = link.find("inertial/origin")
+        if link.find("inertial") is not None:
+            centre_of_mass[link.get("name")] = np.array(
+                [float(v) for v in (origin.get("xyz", "0 0 0") if origin is not None else "0 0 0").split()])
+    return Chain(root, ordered, collision, centre_of_mass)

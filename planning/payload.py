@@ -38,6 +38,29 @@ WRIST_TORQUE_NM = 12.0
 TCP_TO_WRIST_M = 0.21
 """Added to the TCP-to-centre-of-mass distance for the lever about the wrist: TCP to flange 0.105 m, flange to
 the wrist centre (joint 6's height) 0.107 m."""
+PANDA_TORQUE_LIMITS_NM = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
+"""Franka's published joint torque limits, panda_joint1..7."""
+PANDA_LINK_DYNAMICS = {
+    "panda_link1": (4.970684, (0.70337, 0.70661, 0.009117)),
+    "panda_link2": (0.646926, (0.007962, 0.02811, 0.025995)),
+    "panda_link3": (3.228604, (0.037242, 0.036155, 0.01083)),
+    "panda_link4": (3.587895, (0.025853, 0.019552, 0.028323)),
+    "panda_link5": (1.225946, (0.035549, 0.029474, 0.008627)),
+    "panda_link6": (1.666555, (0.001964, 0.004354, 0.005433)),
+    "panda_link7": (0.735522, (0.012516, 0.010027, 0.004815)),
+    "panda_hand": (0.73, (0.001, 0.0025, 0.0017)),
+    "panda_leftfinger": (0.015, (2.375e-6, 2.375e-6, 7.5e-7)),
+    "panda_rightfinger": (0.015, (2.375e-6, 2.375e-6, 7.5e-7)),
+}
+"""Link masses (kg) and principal inertias (kg m^2) identified by Gaz et al. (RA-L 2019); the inertias in
+pybullet_data's URDF (0.1 kg m^2 for every link) are placeholders that the wrist's 12 Nm cannot accelerate as the
+real arm does. The simulator gives the links these; the holding-torque model uses the masses."""
+HOLDING_TORQUE_FRACTION = 0.9
+"""A configuration that holds the payload may need at most this fraction of each joint's torque limit against
+gravity alone: the rest accelerates the arm and its load (slowly, see :func:`carry_limits`) and corrects tracking
+errors. (The simulated wrist sagged 10-28 degrees off its path, and the part hit the assembly, carrying a 3.3 kg
+table top by its edge where gravity alone needed up to 134% of joint 5's 12 N m; it followed within 0.4 mm where
+gravity needed 93%.)"""
 MIN_SCALE = 0.1
 """Accelerations are never scaled below this fraction (velocities: its square root)."""
 GRAVITY_M_S2 = 9.81
@@ -87,4 +110,70 @@ def carry_limits(limits: JointLimits, payload: MassProperties, part_from_tcp: Po
     return limits.slowed(float(np.sqrt(scale)))
 
 
-__all__ = ["DEFAULT_DENSITY_KG_M3", "MassProperties", "carry_limits", "carry_scale", "mass_properties"]
+class HoldingTorques:
+    """Static joint torques (N m) that hold the arm and a payload against gravity (world -z), per configuration.
+
+    The arm's links and hand are point masses (:data:`PANDA_LINK_DYNAMICS`) at their centres of mass
+    (``chain.centre_of_mass``, the URDF's inertial origins); the payload is one at its centre of mass, rigidly held
+    at the grasp ``tcp_from_part``. Joint k carries the torque of every mass beyond it about its axis:
+    ``tau_k = axis_k . ((c - o_k) x m g)``. ``kinematics`` is a
+    :class:`planning.robot_collision.RobotCollisionChecker` (its forward kinematics, ``link_frames``,
+    ``joint_axes``, ``anchor_of`` and ``chain``), ``tcp_link`` the TCP's link.
+    """
+
+    def __init__(self, kinematics, payload: MassProperties | None = None, tcp_from_part: Pose | None = None,
+                 tcp_link: str = "panda_grasptarget", torque_limits_nm=PANDA_TORQUE_LIMITS_NM,
+                 link_masses: dict | None = None, fraction: float = HOLDING_TORQUE_FRACTION) -> None:
+        self.kinematics = kinematics
+        anchors, points, masses = [], [], []
+        for link, (mass, _) in (link_masses or PANDA_LINK_DYNAMICS).items():
+            index, anchor_from_link = kinematics.anchor_of(link)
+            centre = kinematics.chain.centre_of_mass.get(link, np.zeros(3))
+            anchors.append(index)
+            points.append(anchor_from_link[:3, :3] @ centre + anchor_from_link[:3, 3])
+            masses.append(mass)
+        if payload is not None:
+            if tcp_from_part is None:
+                raise ValueError("a payload needs tcp_from_part, the part's pose in the TCP frame")
+            index, anchor_from_tcp = kinematics.anchor_of(tcp_link)
+            anchor_from_com = Pose.from_matrix(anchor_from_tcp) @ tcp_from_part @ payload.part_from_com
+            anchors.append(index)
+            points.append(anchor_from_com.position)
+            masses.append(payload.mass_kg)
+        self.payload_kg = 0.0 if payload is None else float(payload.mass_kg)
+        self._anchors = np.array(anchors, dtype=np.int64)
+        self._points = np.array(points, dtype=np.float64)
+        self._weights = GRAVITY_M_S2 * np.array(masses, dtype=np.float64)
+        self._axes = kinematics.joint_axes()
+        # joint k (child anchor k + 1) moves the masses hanging from anchors k + 1 and beyond (a serial arm)
+        self._moved = self._anchors[None, :] >= np.arange(1, 8)[:, None]  # (7, B)
+        self.limits_nm = np.asarray(torque_limits_nm, dtype=np.float64)
+        self.fraction = float(fraction)
+
+    def torques_nm(self, qs: np.ndarray) -> np.ndarray:
+        """(N, 7) joint torques holding the arm and payload still at configurations ``qs`` (N, 7) radians."""
+        frames = self.kinematics.link_frames(qs)  # (N, 8, 4, 4)
+        body = frames[:, self._anchors]  # (N, B, 4, 4)
+        centres = np.einsum("nbij,bj->nbi", body[..., :3, :3], self._points) + body[..., :3, 3]  # (N, B, 3)
+        joints = frames[:, 1:]  # (N, 7, 4, 4)
+        axes = np.einsum("nkij,kj->nki", joints[..., :3, :3], self._axes)  # (N, 7, 3) world
+        lever = centres[:, None, :, :] - joints[:, :, None, :3, 3]  # (N, 7, B, 3)
+        # (c - o) x (0, 0, -w) = (-w ly, w lx, 0)
+        moment = np.stack([-lever[..., 1], lever[..., 0], np.zeros_like(lever[..., 0])], axis=-1) \
+            * self._weights[None, None, :, None]
+        return -np.einsum("nki,nkbi,kb->nk", axes, moment, self._moved.astype(np.float64))  # holds: -gravity's
+
+    def within(self, qs: np.ndarray) -> np.ndarray:
+        """(N,) whether each configuration holds the load within :attr:`fraction` of every joint's limit."""
+        return np.all(np.abs(self.torques_nm(qs)) <= self.fraction * self.limits_nm, axis=1)
+
+    def words(self, q: np.ndarray) -> str:
+        """The joint most over its share at ``q``, in words (for error messages)."""
+        torques = np.abs(self.torques_nm(np.atleast_2d(q))[0])
+        k = int(np.argmax(torques / self.limits_nm))
+        return (f"holding {self.payload_kg:.2f} kg needs {torques[k]:.1f} N m at panda_joint{k + 1} against gravity, "
+                f"more than {self.fraction:.0%} of its {self.limits_nm[k]:.0f} N m")
+
+
+__all__ = ["DEFAULT_DENSITY_KG_M3", "HoldingTorques", "MassProperties", "PANDA_LINK_DYNAMICS",
+           "PANDA_TORQUE_LIMITS_NM", "carry_limits", "carry_scale", "mass_properties"]

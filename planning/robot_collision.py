@@ -35,6 +35,7 @@ from planning.kinematics import Chain, load_chain
 ARM_JOINTS = tuple(f"panda_joint{i}" for i in range(1, 8))
 FINGER_JOINTS = ("panda_finger_joint1", "panda_finger_joint2")
 FINGER_LINKS = ("panda_leftfinger", "panda_rightfinger")
+HAND_LINKS = ("panda_hand", *FINGER_LINKS)  # what the grasp planner checks (hand_ignore)
 TCP_LINK = "panda_grasptarget"
 BASE_LINK = "panda_link0"
 # link pairs never checked against each other: neighbours in the chain and pairs that touch in every
@@ -366,6 +367,21 @@ class RobotCollisionChecker:
         self._boxes_now = (world_from_body, centre, low, high)
         self._cached_q = key
 
+    def link_frames(self, qs: np.ndarray) -> np.ndarray:
+        """(N, 8, 4, 4) world poses of the base (0) and of the seven arm joints' child links (1..7, each joint's
+        axis through its origin, along :meth:`joint_axes`) at configurations ``qs`` (N, 7) radians."""
+        return _anchors(self._compiled, self.world_from_base, np.atleast_2d(np.asarray(qs, dtype=np.float64)))
+
+    def joint_axes(self) -> np.ndarray:
+        """(7, 3) each arm joint's axis in its child link's frame (see :meth:`link_frames`)."""
+        return np.array([self.chain.joint(name).axis for name in ARM_JOINTS], dtype=np.float64)
+
+    def anchor_of(self, link: str) -> tuple[int, np.ndarray]:
+        """(index into :meth:`link_frames`, anchor_from_link (4, 4)) of any link of the chain (fingers at the
+        current opening)."""
+        index, anchor_from_link = self._compiled.links[link]
+        return int(index), np.asarray(anchor_from_link, dtype=np.float64)
+
     def world_from_tcp(self, q: np.ndarray) -> np.ndarray:
         """(4, 4) the TCP (``panda_grasptarget``) in the world frame at arm configuration ``q`` (radians)."""
         self._poses(np.ascontiguousarray(q, dtype=np.float64))
@@ -379,21 +395,27 @@ class RobotCollisionChecker:
             self._ignore_masks[ignore] = mask
         return mask
 
-    def _pair_mask(self, ignore: frozenset[str], held_ignore: frozenset[str] = frozenset()) -> np.ndarray:
-        """(M, W) which body may meet which world piece: not the base link, not an obstacle in ``ignore``, and for
-        the held part's pieces not one in ``held_ignore`` either."""
-        key = (ignore, held_ignore)
+    def _pair_mask(self, ignore: frozenset[str], held_ignore: frozenset[str] = frozenset(),
+                   hand_ignore: frozenset[str] = frozenset()) -> np.ndarray:
+        """(M, W) which body may meet which world piece: not the base link, not an obstacle in ``ignore``, for
+        the held part's pieces not one in ``held_ignore`` either, and for the hand, the fingers and the held part
+        not one in ``hand_ignore``."""
+        key = (ignore, held_ignore, hand_ignore)
         mask = self._pair_masks.get(key)
         if mask is None:
             mask = self._vs_world[:, None] & self._world_mask(ignore)[None, :]
             if held_ignore:
                 mask[len(self._link_names):] &= self._world_mask(ignore | held_ignore)[None, :]
+            if hand_ignore:
+                hand = np.array([i >= len(self._link_names) or name in HAND_LINKS
+                                 for i, name in enumerate(self._body_names)])
+                mask[hand] &= self._world_mask(ignore | hand_ignore)[None, :]
             self._pair_masks[key] = mask
         return mask
 
     def _candidates(self, world_from_body: np.ndarray, centre: np.ndarray, low: np.ndarray, high: np.ndarray,
-                    ignore: frozenset[str], held_ignore: frozenset[str] = frozenset()
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                    ignore: frozenset[str], held_ignore: frozenset[str] = frozenset(),
+                    hand_ignore: frozenset[str] = frozenset()) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Pairs that may touch, for N configurations: (configuration, rank, body, other) arrays, sorted by
         configuration then rank (0: link against a world piece, 1: two links, 2: held piece against a world
         piece). Broad phase: the bodies' boxes swept over the batch against the world boxes, then per configuration
@@ -402,7 +424,7 @@ class RobotCollisionChecker:
         lower = np.concatenate([low, -high], axis=2)  # (N, M, 6); boxes meet when lower_a <= upper_b
         upper = np.concatenate([high, -low], axis=2)
         padded = lower - self._body_pad[None, :, None]  # against the world: the links' clearance
-        pair_mask = self._pair_mask(ignore, held_ignore)
+        pair_mask = self._pair_mask(ignore, held_ignore, hand_ignore)
         if len(low) > 1:  # world pairs near the whole batch first, then per configuration
             swept = padded.min(axis=0)  # (M, 6)
             body, piece = np.nonzero((swept[:, None, :] <= self._world_upper).all(axis=2) & pair_mask)
@@ -460,33 +482,38 @@ class RobotCollisionChecker:
                 return int(body), int(other), rank == 1
         return None
 
-    def _first_hit(self, q: np.ndarray, ignore: frozenset[str],
-                   held_ignore: frozenset[str] = frozenset()) -> tuple[int, int, bool] | None:
+    def _first_hit(self, q: np.ndarray, ignore: frozenset[str], held_ignore: frozenset[str] = frozenset(),
+                   hand_ignore: frozenset[str] = frozenset()) -> tuple[int, int, bool] | None:
         q = np.ascontiguousarray(q, dtype=np.float64)
         if q.shape != (7,):
             raise ValueError(f"q must hold the 7 arm joint values (radians), got shape {q.shape}")
         self._poses(q)
         world_from_body, centre, low, high = self._boxes_now
-        _, rank, body, other = self._candidates(world_from_body, centre, low, high, ignore, held_ignore)
+        _, rank, body, other = self._candidates(world_from_body, centre, low, high, ignore, held_ignore,
+                                                hand_ignore)
         if len(rank) == 0:
             return None
         return self._narrow(world_from_body[0], zip(rank.tolist(), body.tolist(), other.tolist()))
 
     def first_invalid(self, qs: np.ndarray, ignore: frozenset[str] = frozenset(),
-                      order: np.ndarray | None = None, held_ignore: frozenset[str] = frozenset()) -> int | None:
+                      order: np.ndarray | None = None, held_ignore: frozenset[str] = frozenset(),
+                      hand_ignore: frozenset[str] = frozenset()) -> int | None:
         """Index of the first configuration of ``qs`` (N, 7) radians that collides, taken in ``order`` (default:
         0..N-1), or None when all are valid. Forward kinematics and the broad phase run for all at once.
         ``ignore``: obstacles skipped by every body; ``held_ignore``: obstacles skipped by the held part only (the
-        neighbours it is planned to touch at its target, which the arm and fingers must still clear)."""
+        neighbours it is planned to touch at its target, which the arm and fingers must still clear);
+        ``hand_ignore``: obstacles skipped by the hand, the fingers and the held part, not by the arm's links (the
+        part to be picked and its support, which the grasp planner checked the hand against)."""
         qs = np.ascontiguousarray(qs, dtype=np.float64).reshape(-1, 7)
         ignore = frozenset(ignore)
         held_ignore = frozenset(held_ignore)
+        hand_ignore = frozenset(hand_ignore)
         order = np.arange(len(qs)) if order is None else np.asarray(order)
         for chunk in range(0, len(qs), _BATCH):
             indices = order[chunk:chunk + _BATCH]
             _, world_from_body, centre, low, high = self._boxes(qs[indices])
             configuration, rank, body, other = self._candidates(world_from_body, centre, low, high, ignore,
-                                                                held_ignore)
+                                                                held_ignore, hand_ignore)
             if len(configuration) == 0:
                 continue
             starts = np.flatnonzero(np.r_[True, configuration[1:] != configuration[:-1]])
@@ -506,25 +533,29 @@ class RobotCollisionChecker:
         return max(1, int(np.ceil(sweep / max_step_m)))
 
     def segment_valid(self, q_from: np.ndarray, q_to: np.ndarray, ignore: frozenset[str] = frozenset(),
-                      max_step_m: float = SEGMENT_STEP_M, held_ignore: frozenset[str] = frozenset()) -> bool:
+                      max_step_m: float = SEGMENT_STEP_M, held_ignore: frozenset[str] = frozenset(),
+                      hand_ignore: frozenset[str] = frozenset()) -> bool:
         """Whether the straight joint-space segment from ``q_from`` to ``q_to`` (7,) radians is free: ``q_to`` and
         the configurations in between, spaced so that no point of the robot or the held part moves more than
         ``max_step_m`` between checks, checked coarse to fine. ``q_from`` is taken as valid (checked by the
-        caller, as OMPL's motion validators assume). ``ignore``, ``held_ignore``: as in :meth:`first_invalid`."""
+        caller, as OMPL's motion validators assume). ``ignore``, ``held_ignore``, ``hand_ignore``: as in
+        :meth:`first_invalid`."""
         q_from = np.asarray(q_from, dtype=np.float64)
         q_to = np.asarray(q_to, dtype=np.float64)
         steps = self.segment_samples(q_from, q_to, max_step_m)
         fractions = np.arange(1, steps + 1) / steps
         qs = q_from + fractions[:, None] * (q_to - q_from)
         order = np.concatenate([[steps - 1], _bisection_order(steps - 1)])  # the end first, then inside
-        return self.first_invalid(qs, ignore, order, held_ignore) is None
+        return self.first_invalid(qs, ignore, order, held_ignore, hand_ignore) is None
 
     def first_collision(self, q: np.ndarray, ignore: frozenset[str] = frozenset(),
-                        held_ignore: frozenset[str] = frozenset()) -> Collision | None:
+                        held_ignore: frozenset[str] = frozenset(),
+                        hand_ignore: frozenset[str] = frozenset()) -> Collision | None:
         """The first collision at arm configuration ``q`` (7,) radians, or None when it is valid. Obstacles
-        named in ``ignore`` are skipped for this query, those in ``held_ignore`` by the held part only (names not
-        in the world are allowed and change nothing)."""
-        hit = self._first_hit(q, frozenset(ignore), frozenset(held_ignore))
+        named in ``ignore`` are skipped for this query, those in ``held_ignore`` by the held part only, those in
+        ``hand_ignore`` by the hand, fingers and held part (names not in the world are allowed and change
+        nothing)."""
+        hit = self._first_hit(q, frozenset(ignore), frozenset(held_ignore), frozenset(hand_ignore))
         if hit is None:
             return None
         body, other, other_is_link = hit
@@ -532,7 +563,7 @@ class RobotCollisionChecker:
                          self._body_names[other] if other_is_link else self.world_names[other])
 
     def is_valid(self, q: np.ndarray, ignore: frozenset[str] = frozenset(),
-                 held_ignore: frozenset[str] = frozenset()) -> bool:
-        """Whether ``q`` (7,) radians is free of collisions, skipping the obstacles named in ``ignore`` (and, for
-        the held part only, those in ``held_ignore``)."""
-        return self._first_hit(q, frozenset(ignore), frozenset(held_ignore)) is None
+                 held_ignore: frozenset[str] = frozenset(), hand_ignore: frozenset[str] = frozenset()) -> bool:
+        """Whether ``q`` (7,) radians is free of collisions, skipping the obstacles named in ``ignore`` (for the
+        held part only, those in ``held_ignore``; for the hand, fingers and held part, those in ``hand_ignore``)."""
+        return self._first_hit(q, frozenset(ignore), frozenset(held_ignore), frozenset(hand_ignore)) is None

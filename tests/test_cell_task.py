@@ -117,3 +117,26 @@ def test_an_insertion_starts_farther_back_where_its_pre_place_lies_between_neigh
     rise_m = tcp[0, 2] - tcp[-1, 2]
     assert rise_m == pytest.approx(LEAD_IN_STEPS_M[1], abs=1e-4)  # 4 cm more was not enough, 8 cm was
     assert np.max(np.abs(tcp[:, :2] - tcp[-1, :2])) < 1e-4  # straight down the insertion
+
+
+def test_a_held_part_too_heavy_for_the_wrist_makes_a_configuration_invalid(panda):
+    from planning.payload import mass_properties
+
+    top = trimesh.creation.box((0.6, 0.6, 0.02))  # 4.3 kg of wood
+    parts = {"top": ConvexPart.from_mesh("top", top)}
+    world = CellWorld(panda, Pose.identity(), {}, parts, np.random.default_rng(0), payloads={
+        "top": mass_properties(top)})
+    world.set_part_poses({})
+    # held by its edge: the part's centre 30 cm from the TCP along the TCP's x axis
+    edge = Grasp(Pose([-0.3, 0.0, 0.0], [1, 0, 0, 0]), width_m=0.02, opening_m=0.03, score=1.0, centroid_score=1.0,
+                 contact_score=1.0)
+    world.hold("top", edge, edge.width_m)
+    valid = world.validity()
+    qs = np.random.default_rng(5).uniform(panda.lower_limits, panda.upper_limits, (60, 7))
+    answers = np.array([valid(q) for q in qs])
+    heavy = [q for q, ok in zip(qs, answers) if not ok and "N m at panda_joint" in world._collision_words(q, valid)]
+    assert heavy  # refused for the weight, and the message says which joint
+    first = valid.first_invalid(qs)
+    assert first == (int(np.argmin(answers)) if not answers.all() else None)  # batched: the same answer
+    world.hold(None, None, 0.08)
+    assert valid.load is not None and world.validity().load is None  # the empty hand carries no load

@@ -42,3 +42,61 @@ def test_a_heavy_top_held_by_its_edge_is_carried_slower_the_farther_it_is_held()
     # too heavy for the wrist even at rest: the slowest carry, not a negative limit
     anvil = mass_properties(trimesh.creation.box(extents=(0.3, 0.3, 0.3)), 2000.0)
     assert carry_scale(anvil, edge_grasp(0.15), 18.0) == MIN_SCALE
+
+
+def _pybullet_gravity_torques(q, payload_kg=0.0, tcp_from_com=None):
+    """Joint torques holding the Panda (the simulator's link masses) still at ``q``, from PyBullet's own inverse
+    dynamics; a payload is a point mass welded to the TCP link at ``tcp_from_com`` (metres)."""
+    from cell.bullet import BulletClient
+    from cell.robot import Panda
+    from planning.payload import PANDA_LINK_DYNAMICS
+
+    with BulletClient() as client:
+        pb, cid = client.pb, client.client_id
+        pb.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
+        panda = Panda(client, Pose.identity())
+        index = {pb.getJointInfo(panda.body, j, physicsClientId=cid)[12].decode(): j
+                 for j in range(pb.getNumJoints(panda.body, physicsClientId=cid))}
+        for link, (mass, inertia) in PANDA_LINK_DYNAMICS.items():
+            pb.changeDynamics(panda.body, index[link], mass=mass, localInertiaDiagonal=inertia, physicsClientId=cid)
+        tau = np.array(pb.calculateInverseDynamics(panda.body, list(q) + [0.04, 0.04], [0.0] * 9, [0.0] * 9,
+                                                   physicsClientId=cid)[:7])
+        if payload_kg:  # the point mass's weight, through PyBullet's Jacobian at the TCP link
+            linear, _ = pb.calculateJacobian(panda.body, index["panda_grasptarget"], list(tcp_from_com),
+                                             list(q) + [0.04, 0.04], [0.0] * 9, [0.0] * 9, physicsClientId=cid)
+            tau += np.array(linear)[:, :7].T @ np.array([0.0, 0.0, payload_kg * 9.81])
+        return tau
+
+
+def test_holding_torques_agree_with_pybullets_inverse_dynamics():
+    from planning.payload import HoldingTorques, MassProperties
+    from planning.robot_collision import RobotCollisionChecker
+
+    checker = RobotCollisionChecker(np.eye(4), {})
+    arm_only = HoldingTorques(checker)
+    payload = MassProperties(2.5, Pose([0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]), (0.01, 0.01, 0.01))
+    tcp_from_part = Pose([0.25, 0.05, 0.02], [1.0, 0.0, 0.0, 0.0])  # held 25 cm off its centre of mass
+    loaded = HoldingTorques(checker, payload, tcp_from_part)
+    rng = np.random.default_rng(7)
+    for q in rng.uniform(-1.5, 1.5, (4, 7)):
+        np.testing.assert_allclose(arm_only.torques_nm(q[None])[0], _pybullet_gravity_torques(q), atol=1e-6)
+        np.testing.assert_allclose(loaded.torques_nm(q[None])[0],
+                                   _pybullet_gravity_torques(q, 2.5, tcp_from_part.position), atol=1e-6)
+
+
+def test_a_heavy_part_held_far_out_is_refused_where_the_wrist_cannot_hold_it():
+    from planning.payload import HOLDING_TORQUE_FRACTION, HoldingTorques, MassProperties
+    from planning.robot_collision import RobotCollisionChecker
+
+    checker = RobotCollisionChecker(np.eye(4), {})
+    top = MassProperties(3.3, Pose([0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]), (0.05, 0.05, 0.1))
+    held_at_edge = HoldingTorques(checker, top, Pose([0.3, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]))
+    held_at_centre = HoldingTorques(checker, top, Pose.identity())
+    qs = np.random.default_rng(3).uniform(-2.0, 2.0, (200, 7))
+    edge, centre = held_at_edge.within(qs), held_at_centre.within(qs)
+    assert centre.mean() > 0.95  # 3.3 kg at the TCP: almost anywhere
+    assert 0.1 < edge.mean() < 0.9  # 30 cm out: only where the wrist does not bear the moment
+    assert not np.any(edge & ~centre)
+    worst = qs[np.argmin(edge)]
+    assert not edge[np.argmin(edge)] and "panda_joint" in held_at_edge.words(worst)
+    assert HOLDING_TORQUE_FRACTION < 1.0

@@ -235,6 +235,26 @@ def test_held_ignore_spares_the_held_part_but_not_the_robot():
     assert checker.segment_valid(q + 0.01, q, held_ignore=frozenset({"pebble"}))
 
 
+def test_hand_ignore_spares_the_hand_but_not_the_arms_links():
+    """The part being picked (``hand_ignore``): the hand closes around it, the wrist must not touch it."""
+    checker = RobotCollisionChecker(np.eye(4), {})
+    q = np.array(load_scene().robot.home_q)
+    world_from_tcp = checker.world_from_tcp(q)
+    slab = ConvexPart.from_mesh("slab", trimesh.creation.box([0.2, 0.2, 0.01]))
+    checker.set_obstacles({"slab": (slab, world_from_tcp)})  # through the TCP: the fingers meet it
+    assert checker.first_collision(q).a in ("panda_leftfinger", "panda_rightfinger", "panda_hand")
+    assert checker.is_valid(q, hand_ignore=frozenset({"slab"}))
+    # a board as wide as the wrist 12 cm above the TCP: the links above the hand meet it, hand_ignore or not
+    above = np.eye(4)
+    above[:3, 3] = world_from_tcp[:3, 3] + [0.0, 0.0, 0.2]
+    board = ConvexPart.from_mesh("board", trimesh.creation.box([0.3, 0.3, 0.01]))
+    checker.set_obstacles({"board": (board, above)})
+    hit = checker.first_collision(q, hand_ignore=frozenset({"board"}))
+    assert hit is not None and hit.a.startswith("panda_link") and hit.b == "board"
+    assert not checker.segment_valid(q + 0.01, q, hand_ignore=frozenset({"board"}))  # the batch path too
+    assert checker.is_valid(q, ignore=frozenset({"board"}))
+
+
 def test_finger_opening_moves_the_fingers():
     checker = RobotCollisionChecker(np.eye(4), {})
     q = np.array(load_scene().robot.home_q)
