@@ -48,11 +48,13 @@ def write_pieces_obj(pieces: Sequence[trimesh.Trimesh], path: Path) -> None:
 
 
 def add_convex_body(pb, client_id: int, folder: Path, mesh: trimesh.Trimesh, world_from_body: Pose,
-                    props: MassProperties | None, friction: float, inset_m: float = 0.0) -> int:
+                    props: MassProperties | None, friction: float, inset_m: float = 0.0,
+                    key: str | None = None) -> int:
     """A body of ``mesh``'s convex pieces inset by ``inset_m`` at ``world_from_body`` (mesh frame), dynamic with
     ``props`` or static (None); no visual shape. The pieces' OBJ file is written into ``folder`` once per mesh and
-    inset (reused by later calls with the same folder). Returns the body id."""
-    path = folder / f"{mesh_key(mesh)}-{inset_m:.6f}.obj"
+    inset (reused by later calls with the same folder); ``key``: the mesh's :func:`planning.convex.mesh_key` when
+    the caller has it (hashing a large mesh takes time). Returns the body id."""
+    path = folder / f"{key or mesh_key(mesh)}-{inset_m:.6f}.obj"
     if not path.exists():
         write_pieces_obj([inset(piece, inset_m) for piece in convex_pieces(mesh)], path)
     collision = pb.createCollisionShape(pb.GEOM_MESH, fileName=str(path), physicsClientId=client_id)

@@ -81,7 +81,8 @@ class PhysicsRestCheck:
         pb.setTimeStep(1.0 / settings.rate_hz, physicsClientId=cid)
         folder = Path(self._folder.name)
         for mesh, world_from_body in fixed:
-            add_convex_body(pb, cid, folder, mesh, world_from_body, None, settings.friction)
+            add_convex_body(pb, cid, folder, mesh, world_from_body, None, settings.friction,
+                            key=self._mesh_key(mesh))
         bodies, corners = [], []
         for mesh, world_from_part in loose:
             key = self._mesh_key(mesh)
@@ -89,7 +90,7 @@ class PhysicsRestCheck:
                 self._props[key] = mass_properties(mesh, settings.density_kg_m3)
             props = self._props[key]
             body = add_convex_body(pb, cid, folder, mesh, world_from_part, props, settings.friction,
-                                   inset_m=0.5 * settings.joint_clearance_m)
+                                   inset_m=0.5 * settings.joint_clearance_m, key=key)
             # the box's corners in the centre-of-mass frame PyBullet reports
             box = trimesh.bounds.corners(mesh.bounds)
             bodies.append(body)

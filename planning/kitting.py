@@ -106,6 +106,7 @@ class Pedestal:
 
 
 _PEDESTAL_MESHES: dict[tuple, trimesh.Trimesh] = {}
+_TABLE_SLAB = trimesh.creation.box((2.0, 2.0, 0.02))  # the table under the physics check of resting parts
 _PEDESTAL_MESHES_KEPT = 512
 
 
@@ -669,8 +670,9 @@ class _Layout:
 
     @staticmethod
     def _table_slab(top_z_m: float) -> tuple[trimesh.Trimesh, Pose]:
-        """A 2 m x 2 m table top at height ``top_z_m`` (world), for the physics check of resting parts."""
-        return trimesh.creation.box((2.0, 2.0, 0.02)), Pose([0.0, 0.0, top_z_m - 0.01], [1.0, 0.0, 0.0, 0.0])
+        """A 2 m x 2 m table top at height ``top_z_m`` (world), for the physics check of resting parts (one shared
+        mesh, so the check recognises it without hashing a new one each time)."""
+        return _TABLE_SLAB, Pose([0.0, 0.0, top_z_m - 0.5 * _TABLE_SLAB.extents[2]], [1.0, 0.0, 0.0, 0.0])
 
     def _supported(self, name: str, rest_from_part: np.ndarray, pedestal: Pedestal) -> bool:
         return rests_stably(self.meshes[name], rest_from_part, self._top(pedestal))
