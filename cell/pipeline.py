@@ -198,6 +198,10 @@ class Pipeline:
                          position_error_m=part.position_error_m, rotation_error_deg=part.rotation_error_deg,
                          within_tolerance=part.within_tolerance)
         self.report["simulation"] = result.summary()
+        if result.overlaps_at_target:
+            a, b, depth = result.overlaps_at_target[0]
+            self.console.say(f"    {len(result.overlaps_at_target)} pair(s) of parts overlap at their targets (deepest "
+                             f"{depth * 1000:.1f} mm, {a} and {b}): simulated as fitting, without contact between them")
         if not result.success:
             raise StageFailed(EXIT_SIMULATION, "simulation", result.failure_words())
         return EXIT_OK

@@ -33,6 +33,10 @@ Unplanned contacts are recorded as events (start, end, program step, the two bod
   the lift after it, and its ``fasten_to`` neighbours (with the static bodies under its target for "fixture") during
   the last motion before its release and the release itself.
 
+Two parts whose bodies overlap at their targets (models of real furniture often draw a part a few millimetres into
+its neighbour) do not collide with each other from the insertion of the later one on, and the result lists them
+(:meth:`_Run._overlaps_at_targets`): physics could only push them apart, off target.
+
 Joint position and velocity limit violations of the simulated arm are recorded as events too. Times are on the
 program's clock (0 when it starts). Frames: world (+z up, metres); poses ``world_from_*`` use
 :class:`planning.pose.Pose` (quaternions w first).
@@ -126,6 +130,7 @@ class SimSettings:
     density_kg_m3: float = DEFAULT_DENSITY_KG_M3  # wood; the planner slows heavy carries with the same
     friction: float = 0.6  # parts and static bodies (the fingers keep the URDF's 1.0)
     joint_clearance_m: float = 0.0005  # two parts planned face to face meet with this gap (each is inset by half)
+    overlap_tolerance_m: float = 0.0001  # two parts whose bodies overlap deeper at their targets do not collide
     finger_force_n: float = 20.0  # per finger (the URDF's effort limit)
     finger_speed_m_s: float = 0.05  # per finger
     grasp_contact_m: float = 0.0002  # a finger this close to the part (metres, as PyBullet measures) touches it
@@ -240,6 +245,8 @@ class SimulationResult:
     final_arm_q: tuple[float, ...]  # rad
     final_opening_m: float  # between the fingers
     unsettled: list[str] = field(default_factory=list)  # parts that moved while settling at the start
+    # pairs of parts whose bodies overlap at their targets: (part, part, deepest penetration in metres)
+    overlaps_at_target: list[tuple[str, str, float]] = field(default_factory=list)
 
     @property
     def success(self) -> bool:
@@ -254,7 +261,9 @@ class SimulationResult:
                                    for g in self.grasp_failures],
                 "unplanned_contacts": [asdict(c) for c in self.contacts],
                 "limit_violations": [asdict(v) for v in self.limit_violations],
-                "unsettled_parts": list(self.unsettled)}
+                "unsettled_parts": list(self.unsettled),
+                "overlaps_at_target": [{"part_a": a, "part_b": b, "depth_m": depth}
+                                       for a, b, depth in self.overlaps_at_target]}
 
     def failure_words(self) -> str:
         """One line saying what went wrong (empty on success)."""
@@ -486,6 +495,9 @@ class _Run:
         self.start_supports: dict[str, frozenset[str]] = {}
         self.planned_gaps: dict[tuple[str, str], float] = {}  # (part, fasten_to neighbour) -> gap at their targets
         self.target_supports = self._target_supports()
+        self.overlap_partners: dict[str, set[str]] = {}  # part -> the parts it overlaps at their targets
+        self.overlaps = self._overlaps_at_targets()
+        self.fitted: set[str] = set()  # held parts whose overlap partners no longer collide with them
         self.arm_q = np.zeros(7)
         self.arm_qd = np.zeros(7)
 
@@ -506,6 +518,41 @@ class _Run:
                     self.cell.set_part(other, self.parts[other].world_from_start)
             self.cell.set_part(name, part.world_from_start)
         return supports
+
+    def _overlaps_at_targets(self) -> list[tuple[str, str, float]]:
+        """Pairs of parts whose bodies overlap by more than ``overlap_tolerance_m`` with every part at its target,
+        (a, b, depth in metres), deepest first. Their collision is switched off from the insertion of the later of
+        the two (the held part's last motion before its release) to the end (:meth:`_let_fit`).
+
+        Such targets cannot be reached with physics: models of real furniture often let a part sink a few
+        millimetres into its neighbour (dowels and cam fittings drawn without their holes, or panels drawn into each
+        other), and a part's convex pieces may bulge into a neighbour where the mesh itself does not. Pushed apart,
+        the part would end off target by the depth and knock its neighbours on the way in; a real part has the hole,
+        so the pair is treated as one that fits (and is fastened at release like any touching pair)."""
+        cell, pb, cid = self.cell, self.pb, self.cid
+        for name, part in self.parts.items():
+            cell.set_part(name, part.world_from_target)
+        pb.performCollisionDetection(physicsClientId=cid)
+        names = list(self.parts)
+        overlaps = []
+        for i, a in enumerate(names):
+            for b in names[i + 1:]:
+                points = pb.getClosestPoints(cell.parts[a], cell.parts[b], 0.0, physicsClientId=cid)
+                depth = -min((p[8] for p in points), default=0.0)
+                if depth > self.settings.overlap_tolerance_m:
+                    overlaps.append((a, b, float(depth)))
+                    self.overlap_partners.setdefault(a, set()).add(b)
+                    self.overlap_partners.setdefault(b, set()).add(a)
+        for name, part in self.parts.items():
+            cell.set_part(name, part.world_from_start)
+        return sorted(overlaps, key=lambda o: -o[2])
+
+    def _let_fit(self, name: str) -> None:
+        """From now on, ``name`` does not collide with the parts it overlaps at their targets."""
+        for other in self.overlap_partners.get(name, ()):
+            self.pb.setCollisionFilterPair(self.cell.parts[name], self.cell.parts[other], -1, -1, 0,
+                                           physicsClientId=self.cid)
+        self.fitted.add(name)
 
     def start(self, q0: np.ndarray) -> dict[str, float]:
         """Robot at ``q0`` with the program's initial opening, parts at their start; settle; returns how far each
@@ -538,6 +585,8 @@ class _Run:
 
     def physics_step(self, q_target: np.ndarray, qd_target: np.ndarray, role: _StepRole) -> None:
         pb, cid, robot = self.pb, self.cid, self.cell.robot
+        if self.held is not None and role.place_of == self.held and self.held not in self.fitted:
+            self._let_fit(self.held)
         pb.setJointMotorControlArray(robot, self.cell.panda.arm, pb.POSITION_CONTROL,
                                      targetPositions=q_target.tolist(), targetVelocities=qd_target.tolist(),
                                      forces=ARM_TORQUE_LIMITS_NM, physicsClientId=cid)
@@ -770,7 +819,7 @@ def simulate_program(program: Program, parts: Sequence[SimPart], static_bodies: 
               for e in run.limits.events()]
     return SimulationResult(results, contacts, limits, run.grasp_failures, frames, settings.rate_hz, simulated_s,
                             time.perf_counter() - started, final_q, opening,
-                            [n for n, m in settle_motion.items() if m > settings.settle_tolerance_m])
+                            [n for n, m in settle_motion.items() if m > settings.settle_tolerance_m], run.overlaps)
 
 
 def _planned_grasps(cell: _Cell, program: Program, roles: Sequence[_StepRole], parts: Mapping[str, SimPart],

@@ -229,6 +229,27 @@ def test_fastened_across_the_planned_gap(arm):
     assert {p.name: p for p in result.parts}["b"].fastened_to == ("a",)
 
 
+def test_parts_overlapping_at_their_targets_fit(arm):
+    """b's target sinks 12 mm into a (as models of real furniture draw dowels and panels into each other): the pair
+    does not collide, so b reaches its target and is fastened to a, and the result names the pair and the depth.
+    With the pair colliding as usual (an overlap tolerance beyond the depth), physics pushes b out, off target."""
+    sunk_m = 0.012
+    b = replace(PARTS[1], world_from_target=at(0.57 - 0.03, 0.0, PAD_TOP_M + 0.04 + 0.015 - sunk_m))
+    steps, q = pick_and_place(arm, PARTS[0], HOME, CLOSED_M, OPENING_M)
+    more, q = pick_and_place(arm, b, q, CLOSED_M, OPENING_M)
+    program = Program(steps + more + [MotionStep("return home", timed(q, HOME))], initial_width_m=OPENING_M)
+    result = simulate_program(program, [PARTS[0], b], STATIC, BASE)
+    assert result.success, result.failure_words()
+    (pair,) = result.overlaps_at_target
+    depth = sunk_m - SimSettings().joint_clearance_m  # each body is inset by half the clearance
+    assert pair[:2] == ("a", "b") and abs(pair[2] - depth) < 2e-4
+    assert {p.name: p for p in result.parts}["b"].fastened_to == ("a",)
+    assert result.summary()["overlaps_at_target"][0]["part_b"] == "b"
+    colliding = simulate_program(program, [PARTS[0], b], STATIC, BASE, SimSettings(overlap_tolerance_m=0.05))
+    assert not colliding.overlaps_at_target
+    assert {p.name: p for p in colliding.parts}["b"].position_error_m > SimSettings().position_tolerance_m
+
+
 def test_grasp_far_from_the_plan_is_not_seated(arm):
     """The program closes with the TCP 12 mm beside a's centre along the closing axis: the part does not lie where
     this grasp expects it, so it is held where the fingers found it, and the error shows at the target."""
