@@ -1,6 +1,7 @@
 """Training losses, each after Hungarian matching inside equivalence classes (:mod:`perception.matching`).
 
-Segmentation: negative soft-IoU between predicted and ground-truth part masks. Pose (the paper's weights):
+Segmentation: negative soft-IoU between predicted and ground-truth part masks (optionally with a per-pixel
+cross-entropy on the same matching, beyond the paper: ``loss.mask_cross_entropy``). Pose (the paper's weights):
 
     1 x translation L2      squared distance between predicted and true translation
     20 x rotated-point chamfer  chamfer between the part cloud rotated by the predicted and by the true quaternion
@@ -25,16 +26,22 @@ from perception.model.padding import pack
 # ---------------------------------------------------------------------------------------------- segmentation
 
 
-def target_masks(part_labels: torch.Tensor, max_parts: int, size: int) -> torch.Tensor:
-    """(B, H, W) part index per pixel (-1 background) -> (B, P, size, size) one-hot masks. When downscaled,
-    each output pixel takes the label covering most of its area (background included), so masks stay
-    exclusive and a perfect prediction has soft IoU 1."""
-    labels = part_labels.clone()
+def target_labels(part_labels: torch.Tensor, max_parts: int, size: int) -> torch.Tensor:
+    """(B, H, W) part index per pixel (-1 background) -> (B, size, size) long, background = ``max_parts``. When
+    downscaled, each output pixel takes the label covering most of its area (background included)."""
+    labels = part_labels.clone().long()
     labels[labels < 0] = max_parts  # background as the last channel
     if labels.shape[-1] != size:
         channels = torch.arange(max_parts + 1, device=labels.device).view(1, -1, 1, 1)
         coverage = F.interpolate((labels.unsqueeze(1) == channels).float(), size=(size, size), mode="area")
         labels = coverage.argmax(dim=1)
+    return labels
+
+
+def target_masks(part_labels: torch.Tensor, max_parts: int, size: int) -> torch.Tensor:
+    """(B, H, W) part index per pixel (-1 background) -> (B, P, size, size) one-hot masks of
+    :func:`target_labels`, so masks stay exclusive and a perfect prediction has soft IoU 1."""
+    labels = target_labels(part_labels, max_parts, size)
     parts = torch.arange(max_parts, device=labels.device).view(1, -1, 1, 1)
     return (labels.unsqueeze(1) == parts).float()
 
@@ -47,15 +54,37 @@ def soft_iou_matrix(pred: torch.Tensor, target: torch.Tensor, smooth: float = 1.
     return (inter + smooth) / (union + smooth)
 
 
-def segmentation_loss(masks: torch.Tensor, batch: dict, config: LossConfig) -> dict:
-    """``loss`` = -(mean matched soft IoU over valid parts); ``soft_iou`` the mean itself (detached)."""
-    valid = batch["valid"]
-    target = target_masks(batch["part_labels"], masks.shape[1], masks.shape[-1])
+def matched_cross_entropy(logits: torch.Tensor, labels: torch.Tensor, perm: torch.Tensor) -> torch.Tensor:
+    """Mean per-pixel cross-entropy of the softmax over [part logits; background logit 0] against the true
+    labels relabelled by the matching: a pixel of ground-truth part ``perm[b, i]`` is prediction i's.
+    ``logits`` (B, P, S, S) (-inf in padded slots), ``labels`` (B, S, S) from :func:`target_labels`."""
+    b, p = perm.shape
+    inverse = torch.empty_like(perm)
+    inverse.scatter_(1, perm, torch.arange(p, device=perm.device).expand(b, p))  # ground truth j -> prediction
+    lookup = torch.cat([inverse, torch.full((b, 1), p, dtype=perm.dtype, device=perm.device)], dim=1)
+    relabelled = torch.gather(lookup, 1, labels.reshape(b, -1)).reshape(labels.shape)
+    full = torch.cat([logits, logits.new_zeros(b, 1, *logits.shape[2:])], dim=1)
+    return F.cross_entropy(full, relabelled)
+
+
+def segmentation_loss(outputs: dict, batch: dict, config: LossConfig) -> dict:
+    """``loss`` = -(mean matched soft IoU over valid parts) + ``mask_cross_entropy`` x the matched per-pixel
+    cross-entropy; ``soft_iou`` the mean itself and ``cross_entropy`` (both detached). ``outputs``: the
+    segmentation network's (``masks``, and ``mask_logits`` when the cross-entropy weight is not 0)."""
+    masks, valid = outputs["masks"], batch["valid"]
+    labels = target_labels(batch["part_labels"], masks.shape[1], masks.shape[-1])
+    parts = torch.arange(masks.shape[1], device=labels.device).view(1, -1, 1, 1)
+    target = (labels.unsqueeze(1) == parts).float()
     iou = soft_iou_matrix(masks, target, config.iou_smooth)
     perm = batch_match(-iou, batch["classes"], valid)
     matched = torch.gather(iou, 2, perm.unsqueeze(-1)).squeeze(-1)
     mean = matched[valid].mean()
-    return {"loss": -mean, "soft_iou": mean.detach()}
+    terms = {"loss": -mean, "soft_iou": mean.detach()}
+    if config.mask_cross_entropy:
+        entropy = matched_cross_entropy(outputs["mask_logits"], labels, perm)
+        terms["loss"] = terms["loss"] + config.mask_cross_entropy * entropy
+        terms["cross_entropy"] = entropy.detach()
+    return terms
 
 
 # ---------------------------------------------------------------------------------------------- pose

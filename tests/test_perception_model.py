@@ -1,6 +1,8 @@
 """Networks and losses on a batch of two objects with different part counts: shapes, unit quaternions, padding
 that never reaches valid outputs, zero losses for perfect predictions, gradients to every parameter."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -141,8 +143,35 @@ def test_losses_vanish_for_perfect_predictions(batch):
     assert float(pose_losses(batch["quat"], batch["trans"] + 0.1, batch, CONFIG.loss)["translation"]) > 0.02
     # perfect masks: soft IoU 1
     masks = target_masks(batch["part_labels"], 20, 64)
-    seg = segmentation_loss(masks, batch, CONFIG.loss)
+    seg = segmentation_loss({"masks": masks}, batch, CONFIG.loss)
     assert abs(float(seg["loss"]) + 1.0) < 1e-6
+
+
+def test_mask_cross_entropy_follows_the_matching(batch):
+    """The per-pixel cross-entropy is taken after the within-class matching: confident logits for the true
+    masks with two equivalent parts' channels exchanged cost (almost) nothing; the same logits with two
+    parts of different classes exchanged cost a lot."""
+    config = replace(CONFIG.loss, mask_cross_entropy=1.0)
+    masks = target_masks(batch["part_labels"], 20, 64)
+    valid = batch["valid"]
+
+    def outputs(order):  # order: object 0's channel order; object 1 keeps its own
+        orders = torch.stack([torch.tensor(order), torch.arange(20)])
+        chosen = torch.gather(masks, 1, orders[:, :, None, None].expand_as(masks))
+        logits = (chosen * 2 - 1) * 30.0  # +30 inside a mask, -30 outside; background logit 0
+        logits = logits.masked_fill(~valid[:, :, None, None], float("-inf"))
+        return {"mask_logits": logits, "masks": torch.softmax(torch.cat(
+            [logits, logits.new_zeros(logits.shape[0], 1, 64, 64)], 1), 1)[:, :-1]}
+
+    identity = list(range(20))
+    same_class = [1, 0, *identity[2:]]  # object 0's parts 0 and 1 are equivalent, part 2 is not
+    cross_class = [2, 1, 0, *identity[3:]]
+    exact = segmentation_loss(outputs(identity), batch, config)
+    swapped = segmentation_loss(outputs(same_class), batch, config)
+    wrong = segmentation_loss(outputs(cross_class), batch, config)
+    assert float(exact["cross_entropy"]) < 1e-6 and float(swapped["cross_entropy"]) < 1e-6
+    assert float(wrong["cross_entropy"]) > 0.1
+    assert torch.isfinite(wrong["loss"])
 
 
 @pytest.mark.parametrize("kind", sorted(MODELS))
@@ -152,7 +181,7 @@ def test_gradients_reach_every_parameter(kind, batch):
     out = model(batch)
     loss = model_pose_loss(out, batch, CONFIG.loss)["loss"]
     if kind == "ours":
-        loss = loss + segmentation_loss(out["masks"], batch, CONFIG.loss)["loss"]
+        loss = loss + segmentation_loss(out, batch, replace(CONFIG.loss, mask_cross_entropy=1.0))["loss"]
     assert torch.isfinite(loss)
     loss.backward()
     missing = [n for n, p in model.named_parameters() if p.grad is None or not torch.isfinite(p.grad).all()]

@@ -1,6 +1,7 @@
 """The training stages: what each trains, its loss and its validation.
 
-The paper's model trains in two stages: ``segmentation`` (the conditional U-Net, loss: negative soft-IoU;
+The paper's model trains in two stages: ``segmentation`` (the conditional U-Net, loss: negative soft-IoU, with
+``loss.mask_cross_entropy`` x a per-pixel cross-entropy;
 validated by the mean matched soft IoU), then ``pose`` (the pose network on the masks predicted by the
 segmentation network, frozen by default; loss: the four pose losses on both phases; validated by Part
 Accuracy, ties broken by the pose loss). With ``train.freeze_segmentation = false`` the pose stage fine-tunes
@@ -36,14 +37,14 @@ class SegmentationStage:
             p.requires_grad_(True)
 
     def loss(self, net: nn.Module, model: nn.Module, batch: dict) -> dict:
-        return segmentation_loss(net(batch)["masks"], batch, self.config.loss)
+        return segmentation_loss(net(batch), batch, self.config.loss)
 
     @torch.no_grad()
     def validate(self, model: nn.Module, batches) -> tuple[dict, tuple]:
         model.eval()
         total, parts = 0.0, 0
         for batch in batches:
-            terms = segmentation_loss(model.segmentation(batch)["masks"], batch, self.config.loss)
+            terms = segmentation_loss(model.segmentation(batch), batch, self.config.loss)
             n = int(batch["valid"].sum())
             total += float(terms["soft_iou"]) * n
             parts += n
@@ -84,7 +85,7 @@ class PoseStage:
         out = net(batch)
         terms = model_pose_loss(out, batch, self.config.loss)
         if isinstance(model, AssemblyNet):  # fine-tuning both networks: keep the masks supervised
-            seg = segmentation_loss(out["masks"], batch, self.config.loss)
+            seg = segmentation_loss(out, batch, self.config.loss)
             terms["loss"] = terms["loss"] + seg["loss"]
             terms["soft_iou"] = seg["soft_iou"]
         return terms
