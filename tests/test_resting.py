@@ -1,11 +1,18 @@
 """The physics check of resting parts (cell.resting) and its use by the kitting layout."""
 
 import dataclasses
+import tempfile
+from pathlib import Path
 
 import numpy as np
+import pybullet as pb
 import trimesh
 
+from cell.bodies import add_convex_body
+from cell.bullet import BulletClient
 from cell.resting import PhysicsRestCheck
+from cell.simulate import SimSettings
+from planning.payload import mass_properties
 from planning.kitting import _rest_half, chocks_for, pedestal_for, rests_stably, upright_rest_pose
 from planning.pose import Pose
 
@@ -98,3 +105,44 @@ def test_kitting_never_stands_a_frame_where_physics_says_it_falls():
         table = (trimesh.creation.box((4.0, 4.0, 0.02)), Pose([0, 0, -0.01], [1, 0, 0, 0]))
         assert check([(frame, slot.world_from_part)], [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal),
                                                        table])
+
+
+def _sway_of_top_mm(mesh: trimesh.Trimesh, chocks, nudge_rad_s: float = 0.2) -> float:
+    """A board standing on its edge on a pedestal between ``chocks``, nudged about its long axis (x): how far its
+    top edge ends from where it stood, after 1.5 s (millimetres), with the simulation's bodies."""
+    settings = SimSettings()
+    rest = upright_rest_pose(mesh, np.eye(3))
+    pedestal = dataclasses.replace(pedestal_for(_rest_half(mesh, rest)[0], IDENTITY, PEDESTAL_HEIGHT_M),
+                                   chocks=chocks)
+    with BulletClient() as client, tempfile.TemporaryDirectory() as folder:
+        cid = client.client_id
+        pb.setGravity(0, 0, -9.81, physicsClientId=cid)
+        pb.setTimeStep(1.0 / settings.rate_hz, physicsClientId=cid)
+        add_convex_body(pb, cid, Path(folder), pedestal.mesh(), pedestal.world_from_pedestal,
+                        None, settings.friction)
+        props = mass_properties(mesh, settings.density_kg_m3)
+        world_from_part = Pose.from_matrix(rest)
+        body = add_convex_body(pb, cid, Path(folder), mesh, world_from_part, props,
+                               settings.friction, inset_m=0.5 * settings.joint_clearance_m)
+        pb.resetBaseVelocity(body, [0, 0, 0], [nudge_rad_s, 0, 0], physicsClientId=cid)
+        for _ in range(int(1.5 * settings.rate_hz)):
+            pb.stepSimulation(physicsClientId=cid)
+        position, orientation = pb.getBasePositionAndOrientation(body, physicsClientId=cid)
+        now = Pose.from_pybullet(position, orientation) @ props.part_from_com.inverse()
+        top = np.array([[0.0, 0.0, mesh.bounds[1][2]]])
+        return float(np.linalg.norm(now.apply(top) - world_from_part.apply(top)) * 1000)
+
+
+def test_a_thin_panel_standing_on_its_edge_gets_chocks_tall_enough_to_keep_it_upright():
+    """A 3 mm hardboard panel 25 cm tall standing on its edge (as a cabinet's back stands in its assembly): its
+    chocks rise far enough that, nudged, it leans on them by a few millimetres at the top, where the fingers take
+    it; on 1 cm chocks (those that cradle a round leg) it swayed by more than a centimetre."""
+    panel = trimesh.creation.box((0.55, 0.003, 0.254))
+    _, _, stable, chocks = _on_pedestal(panel)
+    assert not stable and chocks
+    rise = max(size[2] for size, _ in chocks) - PEDESTAL_HEIGHT_M
+    assert rise >= 0.08
+    low = tuple((size[:2] + (PEDESTAL_HEIGHT_M + 0.01,), Pose(pose.position * [1, 1, 0] + [0, 0, 0.005],
+                                                            pose.quat_wxyz)) for size, pose in chocks)
+    assert _sway_of_top_mm(panel, chocks) < 4.0
+    assert _sway_of_top_mm(panel, low) > 10.0
