@@ -26,10 +26,14 @@ RELATIVE_CONTACT_TOLERANCE = 0.025
 SUPPORT_NORMAL_MIN_Z = np.cos(np.radians(45.0))
 
 
+def tolerance_for_size_m(size_m: float) -> float:
+    """Gap under which a part of this size (its box diagonal, metres) touches something: 2.5%, within 2-12 mm."""
+    return float(np.clip(RELATIVE_CONTACT_TOLERANCE * size_m, MIN_CONTACT_TOLERANCE_M, MAX_CONTACT_TOLERANCE_M))
+
+
 def contact_tolerance_m(part_a: ConvexPart, part_b: ConvexPart) -> float:
     """Gap under which two parts count as touching: 2.5% of the smaller part's size, within 2-12 mm."""
-    size = min(float(np.linalg.norm(np.ptp(p.vertices, axis=0))) for p in (part_a, part_b))
-    return float(np.clip(RELATIVE_CONTACT_TOLERANCE * size, MIN_CONTACT_TOLERANCE_M, MAX_CONTACT_TOLERANCE_M))
+    return tolerance_for_size_m(min(float(np.linalg.norm(np.ptp(p.vertices, axis=0))) for p in (part_a, part_b)))
 
 
 @dataclass(frozen=True)
@@ -54,9 +58,7 @@ def contact_graph(parts: list[ConvexPart], poses: list[Pose], floor_z_m: float =
     for part in parts:
         graph.add_node(part.name)
     for i, (part_a, pose_a) in enumerate(zip(parts, poses)):
-        size = float(np.linalg.norm(np.ptp(part_a.vertices, axis=0)))
-        floor_tolerance = float(np.clip(RELATIVE_CONTACT_TOLERANCE * size, MIN_CONTACT_TOLERANCE_M,
-                                        MAX_CONTACT_TOLERANCE_M))
+        floor_tolerance = tolerance_for_size_m(float(np.linalg.norm(np.ptp(part_a.vertices, axis=0))))
         lowest = bounds[i][0, 2]
         if lowest - floor_z_m <= floor_tolerance:
             point = pose_a.apply(part_a.vertices[np.argmin(pose_a.apply(part_a.vertices)[:, 2])])

@@ -1,0 +1,41 @@
+"""The assembly fixture's pads (planning/fixture.py): under every part the contact graph stands on the floor."""
+
+import numpy as np
+import trimesh
+
+from planning.collision import ConvexPart
+from planning.contact import FLOOR, contact_graph
+from planning.fixture import FINGER_CLEARANCE_M, PAD_HEIGHT_M, fixture_pads
+from planning.pose import Pose
+
+
+def _box(size, centre):
+    return trimesh.creation.box(size, transform=trimesh.transformations.translation_matrix(centre))
+
+
+def _table_drawn_loosely():
+    """A small table as real models draw one: leg a on the floor, leg b 4 mm above it (both under the top), a
+    stretcher 3 cm above the floor, and a board lying on the floor."""
+    return {"leg_a": _box((0.04, 0.04, 0.3), (0.0, 0.0, 0.15)),
+            "leg_b": _box((0.04, 0.04, 0.3), (0.3, 0.0, 0.154)),
+            "stretcher": _box((0.26, 0.02, 0.02), (0.15, 0.0, 0.04)),
+            "board": _box((0.3, 0.2, 0.018), (0.15, 0.4, 0.009))}
+
+
+def test_pads_meet_every_part_the_contact_graph_stands_on_the_floor():
+    meshes = _table_drawn_loosely()
+    pads = {pad.part: pad for pad in fixture_pads(list(meshes), list(meshes.values()))}
+    identity = Pose([0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0])
+    graph = contact_graph([ConvexPart.from_mesh(n, m) for n, m in meshes.items()], [identity] * len(meshes))
+    on_floor = set(graph.neighbors(FLOOR))
+    assert on_floor == {"leg_a", "leg_b", "board"} == set(pads)
+    for name, pad in pads.items():
+        box = trimesh.bounds.corners(np.array([-1, 1])[:, None] * 0.5 * np.array(pad.size_m))
+        z = pad.assembly_from_pad.apply(box)[:, 2]
+        lowest = meshes[name].bounds[0][2]
+        assert abs(z.max() - lowest) < 1e-9  # the top meets the part ...
+        assert abs(z.min() + PAD_HEIGHT_M) < 1e-9  # ... and the foot stands on the table
+    assert abs(pads["leg_b"].size_m[2] - (PAD_HEIGHT_M + 0.004)) < 1e-9
+    # a board's pad is inset for the fingers; a leg's keeps a share of its footprint
+    assert np.allclose(pads["board"].size_m[:2], (0.3 - 2 * FINGER_CLEARANCE_M, 0.2 - 2 * FINGER_CLEARANCE_M))
+    assert 0.0 < pads["leg_b"].size_m[0] < 0.04
