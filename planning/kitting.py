@@ -70,8 +70,8 @@ CHOCK_END_INSET_M = 0.002  # chocks stop this short of the part's ends
 CHOCK_HEIGHT_FRACTION = 0.35  # a chock rises this fraction of the part's height above the pedestal's top ...
 CHOCK_MAX_HEIGHT_M = 0.01  # ... at most this much
 CHOCK_CLEARANCE_M = 0.0005  # between a chock and the part's side
-CHOCK_LEAN_M = 0.0015  # a part leaning on its chocks moves its top by at most this (taller chocks for tall parts) ...
-CHOCK_TALL_FRACTION = 0.5  # ... with chocks rising at most this fraction of its height above the pedestal
+CHOCK_LEAN_M = 0.004  # a part leaning on its chocks moves its top by at most this (taller chocks for tall parts) ...
+CHOCK_TALL_FRACTION = 0.25  # ... with chocks rising at most this fraction of its height above the pedestal
 ELONGATED_RATIO = 2.0  # only a footprint at least this many times longer than wide is cradled
 MAX_REST_POSES = 24  # stable poses considered per part (a round leg has one per facet, each turned about its axis)
 MAX_GROUND_POSES = 7  # ... of which this many (the best for picking from above) are tried on the ground
@@ -241,7 +241,8 @@ def chocks_for(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: floa
     rise = min(CHOCK_HEIGHT_FRACTION * span[2], CHOCK_MAX_HEIGHT_M)  # low, for a round leg lying down
     if span[2] > ELONGATED_RATIO * span[across]:
         # a board standing on its edge leans on its chocks by their clearance over their height: they rise far
-        # enough that its top moves at most CHOCK_LEAN_M (low chocks let a 3 mm panel's top sway by 13 mm)
+        # enough that its top moves at most about CHOCK_LEAN_M (on 1 cm chocks a 3 mm panel 25 cm tall leans by
+        # centimetres), capped at a quarter of its height (chocks rising to half of it blocked the carries past them)
         rise = max(rise, min(CHOCK_CLEARANCE_M * span[2] / CHOCK_LEAN_M, CHOCK_TALL_FRACTION * span[2]))
     chocks = []
     for end in (rested[:, along].min() + CHOCK_END_INSET_M, rested[:, along].max() - CHOCK_END_INSET_M):
