@@ -226,7 +226,7 @@ class QueryBuilder:
         assembly_box = np.array([corners[:, 0].min(axis=0), corners[:, 1].max(axis=0)]) + world_from_assembly[:3, 3]
         static = {"table": self.table}
         for pad in fixture_pads(order, posed):
-            static[f"pad {pad.part}"] = (_box_part(f"pad {pad.part}", pad.size_m),
+            static[f"pad {pad.part}"] = (ConvexPart.from_mesh(f"pad {pad.part}", pad.mesh()),
                                          world_from_assembly @ pad.assembly_from_pad.matrix())
         convex = {n: ConvexPart.from_mesh(n, parts[n].mesh) for n in order}
         first_stage = [n for n in order if stages[n] == stages[order[0]]]

@@ -27,36 +27,99 @@ FLOOR_CONTACT_M = 0.002  # vertices this close to a part's lowest point form its
 
 @dataclass(frozen=True)
 class Pad:
-    """One fixture pad: an axis-aligned box (metres) under part ``part``, its top at the part's lowest point (z = 0
-    of the assembly frame, or within a few millimetres of it), its foot on the table."""
+    """The fixture under part ``part``: one axis-aligned box per foot of the part (``boxes``: (size, centre) in the
+    pad frame, metres), their tops at the part's lowest point (z = 0 of the assembly frame, or within a few
+    millimetres of it), their feet on the table. The pad frame is the assembly frame translated to the middle of
+    the part's footprint, at the boxes' mid-height."""
 
     part: str
-    size_m: tuple[float, float, float]
-    assembly_from_pad: Pose  # box centre
+    boxes: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...]
+    assembly_from_pad: Pose
 
     def mesh(self) -> trimesh.Trimesh:
-        """The pad's box in its own frame (centred)."""
-        return trimesh.creation.box(self.size_m)
+        """The pad's boxes in its own frame."""
+        boxes = [trimesh.creation.box(size, transform=trimesh.transformations.translation_matrix(centre))
+                 for size, centre in self.boxes]
+        return boxes[0] if len(boxes) == 1 else trimesh.util.concatenate(boxes)
+
+
+def _feet(mesh: trimesh.Trimesh, lowest: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(low, high) x-y corners of each foot: the connected patches of faces lying within :data:`FLOOR_CONTACT_M` of
+    the lowest point, patches whose boxes touch merged (a board's underside is one foot, a frame's two legs are
+    two); a part that touches the floor only at vertices or edges has one foot around them."""
+    vertices = np.asarray(mesh.vertices)
+    near = vertices[:, 2] <= lowest + FLOOR_CONTACT_M
+    faces = np.asarray(mesh.faces)
+    bottom = faces[near[faces].all(axis=1)]
+    boxes = []
+    if len(bottom):
+        # faces sharing a vertex position belong to one patch (meshes often repeat vertices at seams)
+        _, key = np.unique(np.round(vertices[:, :2], 6), axis=0, return_inverse=True)
+        parent = np.arange(key.max() + 1)
+
+        def root(i):
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        for a, b, c in key.reshape(-1)[bottom]:
+            ra, rb, rc = root(a), root(b), root(c)
+            parent[rb], parent[rc] = ra, ra
+        roots = np.array([root(k) for k in key.reshape(-1)[bottom[:, 0]]])
+        for r in np.unique(roots):
+            xy = vertices[bottom[roots == r].reshape(-1), :2]
+            boxes.append((xy.min(axis=0), xy.max(axis=0)))
+    else:
+        xy = vertices[near, :2]
+        boxes.append((xy.min(axis=0), xy.max(axis=0)))
+    merged = True
+    while merged and len(boxes) > 1:  # patches whose boxes touch or overlap form one foot
+        merged = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                (lo_i, hi_i), (lo_j, hi_j) = boxes[i], boxes[j]
+                if np.all(lo_i <= hi_j + FLOOR_CONTACT_M) and np.all(lo_j <= hi_i + FLOOR_CONTACT_M):
+                    boxes[i] = (np.minimum(lo_i, lo_j), np.maximum(hi_i, hi_j))
+                    del boxes[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    return boxes
 
 
 def fixture_pads(names: list[str], meshes_in_assembly: list[trimesh.Trimesh]) -> list[Pad]:
     """Pads under every part that stands on z = 0 (meshes already posed in the assembly frame): its lowest point
     within the contact graph's tolerance of the floor (:func:`planning.contact.tolerance_for_size_m`, 2-12 mm, so
     that a part the sequence fastens to the floor has a pad). A pad's top meets its part's lowest point: the legs of
-    a real table drawn 4 mm above the floor stand on their pads."""
+    a real table drawn 4 mm above the floor stand on their pads. Each foot of the part gets its own box, inset by
+    :data:`FINGER_CLEARANCE_M` (or to :data:`MIN_PAD_FRACTION` of a small foot): one box spanning a side frame's two
+    legs, inset from its ends, would miss both."""
     pads = []
-    for name, mesh in zip(names, meshes_in_assembly):
+    bounds = [np.asarray(mesh.bounds) for mesh in meshes_in_assembly]
+    for index, (name, mesh) in enumerate(zip(names, meshes_in_assembly)):
         vertices = np.asarray(mesh.vertices)
         lowest = float(vertices[:, 2].min())
         if lowest > tolerance_for_size_m(float(np.linalg.norm(np.ptp(vertices, axis=0)))):
             continue
-        footprint = vertices[vertices[:, 2] <= lowest + FLOOR_CONTACT_M][:, :2]
-        low, high = footprint.min(axis=0), footprint.max(axis=0)
-        extent = high - low
-        inset = np.minimum(FINGER_CLEARANCE_M, 0.5 * (1.0 - MIN_PAD_FRACTION) * extent)
-        size_xy = np.maximum(extent - 2.0 * inset, 1e-3)
-        centre_xy = 0.5 * (low + high)
         height = PAD_HEIGHT_M + lowest  # the foot stays on the table, PAD_HEIGHT_M below z = 0
-        pads.append(Pad(name, (float(size_xy[0]), float(size_xy[1]), height),
-                        Pose([centre_xy[0], centre_xy[1], lowest - 0.5 * height], [1.0, 0.0, 0.0, 0.0])))
+        # a foot above another part (a cabinet's side drawn on its bottom board, a few millimetres up) rests on
+        # that part, not on a pad
+        below = [b for k, b in enumerate(bounds) if k != index and b[0, 2] < lowest - FLOOR_CONTACT_M]
+        feet = [(lo, hi) for lo, hi in _feet(mesh, lowest)
+                if not any(np.all(lo < b[1, :2]) and np.all(b[0, :2] < hi) for b in below)]
+        if not feet:
+            continue
+        middle = 0.5 * (np.min([lo for lo, _ in feet], axis=0) + np.max([hi for _, hi in feet], axis=0))
+        boxes = []
+        for low, high in feet:
+            extent = high - low
+            inset = np.minimum(FINGER_CLEARANCE_M, 0.5 * (1.0 - MIN_PAD_FRACTION) * extent)
+            size_xy = np.maximum(extent - 2.0 * inset, 1e-3)
+            centre_xy = 0.5 * (low + high) - middle
+            boxes.append(((float(size_xy[0]), float(size_xy[1]), height),
+                          (float(centre_xy[0]), float(centre_xy[1]), 0.0)))
+        pads.append(Pad(name, tuple(boxes), Pose([middle[0], middle[1], lowest - 0.5 * height],
+                                                 [1.0, 0.0, 0.0, 0.0])))
     return pads
