@@ -12,8 +12,8 @@ from cell.bodies import add_convex_body
 from cell.bullet import BulletClient
 from cell.resting import PhysicsRestCheck
 from cell.simulate import SimSettings
-from planning.payload import mass_properties
 from planning.kitting import _rest_half, chocks_for, pedestal_for, rests_stably, upright_rest_pose
+from planning.payload import mass_properties
 from planning.pose import Pose
 
 PEDESTAL_HEIGHT_M = 0.12
