@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from planning.contact import tolerance_for_size_m
 from planning.pose import Pose
@@ -55,20 +57,14 @@ def _feet(mesh: trimesh.Trimesh, lowest: float) -> list[tuple[np.ndarray, np.nda
     if len(bottom):
         # faces sharing a vertex position belong to one patch (meshes often repeat vertices at seams)
         _, key = np.unique(np.round(vertices[:, :2], 6), axis=0, return_inverse=True)
-        parent = np.arange(key.max() + 1)
-
-        def root(i):
-            while parent[i] != i:
-                parent[i] = parent[parent[i]]
-                i = parent[i]
-            return i
-
-        for a, b, c in key.reshape(-1)[bottom]:
-            ra, rb, rc = root(a), root(b), root(c)
-            parent[rb], parent[rc] = ra, ra
-        roots = np.array([root(k) for k in key.reshape(-1)[bottom[:, 0]]])
-        for r in np.unique(roots):
-            xy = vertices[bottom[roots == r].reshape(-1), :2]
+        corners = key.reshape(-1)[bottom]  # (faces, 3) position keys
+        edges = np.concatenate([corners[:, [0, 1]], corners[:, [1, 2]]])
+        size = int(key.max()) + 1
+        _, patch = connected_components(coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])),
+                                                   shape=(size, size)), directed=False)
+        face_patch = patch[corners[:, 0]]
+        for label in np.unique(face_patch):
+            xy = vertices[bottom[face_patch == label].reshape(-1), :2]
             boxes.append((xy.min(axis=0), xy.max(axis=0)))
     else:
         xy = vertices[near, :2]
