@@ -41,7 +41,11 @@ def target_labels(part_labels: torch.Tensor, max_parts: int, size: int) -> torch
 def target_masks(part_labels: torch.Tensor, max_parts: int, size: int) -> torch.Tensor:
     """(B, H, W) part index per pixel (-1 background) -> (B, P, size, size) one-hot masks of
     :func:`target_labels`, so masks stay exclusive and a perfect prediction has soft IoU 1."""
-    labels = target_labels(part_labels, max_parts, size)
+    return one_hot_masks(target_labels(part_labels, max_parts, size), max_parts)
+
+
+def one_hot_masks(labels: torch.Tensor, max_parts: int) -> torch.Tensor:
+    """(B, S, S) labels of :func:`target_labels` -> (B, P, S, S) one-hot part masks (background in none)."""
     parts = torch.arange(max_parts, device=labels.device).view(1, -1, 1, 1)
     return (labels.unsqueeze(1) == parts).float()
 
@@ -73,8 +77,7 @@ def segmentation_loss(outputs: dict, batch: dict, config: LossConfig) -> dict:
     segmentation network's (``masks``, and ``mask_logits`` when the cross-entropy weight is not 0)."""
     masks, valid = outputs["masks"], batch["valid"]
     labels = target_labels(batch["part_labels"], masks.shape[1], masks.shape[-1])
-    parts = torch.arange(masks.shape[1], device=labels.device).view(1, -1, 1, 1)
-    target = (labels.unsqueeze(1) == parts).float()
+    target = one_hot_masks(labels, masks.shape[1])
     iou = soft_iou_matrix(masks, target, config.iou_smooth)
     perm = batch_match(-iou, batch["classes"], valid)
     matched = torch.gather(iou, 2, perm.unsqueeze(-1)).squeeze(-1)
