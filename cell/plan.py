@@ -393,7 +393,8 @@ class _Kit:
             self.slots = plan_kitting(order, [assembly.part(n).mesh for n in order], ranked, ok_at_target,
                                       _kitting_area(scene, assembly), prefer_near_xy=world_from_assembly.position[:2],
                                       reach=kit_reach, deadline=deadline,
-                                      target_rotations={n: targets[n].rotation for n in order}, rests=rests)
+                                      target_rotations={n: targets[n].rotation for n in order}, rests=rests,
+                                      settles=None if rests is None else rests.settle)
         except KittingError as exc:
             words = kit_reach.weight_words(exc.part) if exc.part else ""
             if words and exc.kind in (NO_GRASP_AT_TARGET, NO_PLACE):

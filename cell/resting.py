@@ -8,7 +8,9 @@ and slide or tip over in the second: a chair's side frame of tubes standing on t
 chocks falls over within a second, a board stacked on a bevelled one slides off it, and later the fingers close
 on air. :class:`PhysicsRestCheck` drops the bodies where the layout puts them in a headless PyBullet client built
 as :mod:`cell.simulate` builds its cell (same bodies, friction, density, rate and gravity) and says whether every
-loose one stays put.
+loose one stays put. :meth:`PhysicsRestCheck.settle` lets them come to rest first and says where they lie (for a
+part that rests on its pedestal only once it has tipped onto it: a dished board on a pedestal inset from its rim,
+a tapered leg).
 
 Units: metres, seconds; poses ``world_from_*`` (world +z up) as :class:`planning.pose.Pose`.
 """
@@ -35,6 +37,8 @@ REST_MOTION_M = 0.002
 """A corner of a loose body's bounding box moving farther than this (metres) in that time: it does not rest."""
 REST_SPEED_M_S = 0.004
 """... nor one whose centre still moves faster than this at the end (a slow creep off its support)."""
+SETTLE_S = 1.5
+"""Simulated seconds :meth:`PhysicsRestCheck.settle` lets the bodies move before it reads where they lie."""
 
 Body = tuple[trimesh.Trimesh, Pose]
 
@@ -53,17 +57,32 @@ class PhysicsRestCheck:
         self._props: dict[str, MassProperties] = {}
         self.checks = 0  # how many simulations ran (for profiling and tests)
         self._answers: dict[tuple, bool] = {}  # the same bodies at the same poses: the same answer
+        self._settled: dict[tuple, list[Pose] | None] = {}
         self._keys: dict[int, tuple[trimesh.Trimesh, str]] = {}  # id(mesh) -> (mesh, mesh_key): hashing is slow
 
     def __call__(self, loose: Sequence[Body], fixed: Sequence[Body]) -> bool:
         return self.check(loose, fixed)
 
     def check(self, loose: Sequence[Body], fixed: Sequence[Body]) -> bool:
-        key = tuple((self._mesh_key(mesh), np.round(pose.matrix(), 6).tobytes()) for mesh, pose in (*loose, *fixed))
-        key = (len(loose), key)
+        key = self._key(loose, fixed)
         if key not in self._answers:
-            self._answers[key] = self._simulate(loose, fixed)
+            self._answers[key] = self._simulate(loose, fixed, self.duration_s)[0]
         return self._answers[key]
+
+    def settle(self, loose: Sequence[Body], fixed: Sequence[Body]) -> list[Pose] | None:
+        """Where the ``loose`` bodies lie (world_from_part, in their order) after :data:`SETTLE_S` under gravity
+        among the ``fixed`` ones, provided they then rest there (:meth:`check` from those poses); else None.
+        Where they went (fell off, tipped over) is the caller's to judge."""
+        key = self._key(loose, fixed)
+        if key not in self._settled:
+            poses = self._simulate(loose, fixed, SETTLE_S)[1]
+            rested = self.check([(mesh, pose) for (mesh, _), pose in zip(loose, poses)], fixed)
+            self._settled[key] = poses if rested else None
+        return self._settled[key]
+
+    def _key(self, loose: Sequence[Body], fixed: Sequence[Body]) -> tuple:
+        key = tuple((self._mesh_key(mesh), np.round(pose.matrix(), 6).tobytes()) for mesh, pose in (*loose, *fixed))
+        return (len(loose), key)
 
     def _mesh_key(self, mesh: trimesh.Trimesh) -> str:
         cached = self._keys.get(id(mesh))
@@ -71,7 +90,8 @@ class PhysicsRestCheck:
             cached = self._keys[id(mesh)] = (mesh, mesh_key(mesh))
         return cached[1]
 
-    def _simulate(self, loose: Sequence[Body], fixed: Sequence[Body]) -> bool:
+    def _simulate(self, loose: Sequence[Body], fixed: Sequence[Body], duration_s: float) -> tuple[bool, list[Pose]]:
+        """(whether every loose body stayed put for ``duration_s``, their world_from_part poses at the end)."""
         if self._client is None:
             self._client = BulletClient()
         pb, cid, settings = self._client.pb, self._client.client_id, self.settings
@@ -96,19 +116,24 @@ class PhysicsRestCheck:
             bodies.append(body)
             corners.append(props.part_from_com.inverse().apply(box))
         start = [self._corners_now(body, local) for body, local in zip(bodies, corners)]
-        for _ in range(int(round(self.duration_s * settings.rate_hz))):
+        for _ in range(int(round(duration_s * settings.rate_hz))):
             pb.stepSimulation(physicsClientId=cid)
+        still = True
         for body, local, before in zip(bodies, corners, start):
             moved = np.linalg.norm(self._corners_now(body, local) - before, axis=1).max()
             speed = np.linalg.norm(pb.getBaseVelocity(body, physicsClientId=cid)[0])
-            if not (moved <= self.tolerance_m and speed <= self.speed_m_s):
-                return False
-        return True
+            still &= bool(moved <= self.tolerance_m and speed <= self.speed_m_s)
+        poses = [self._world_from_com(body) @ self._props[self._mesh_key(mesh)].part_from_com.inverse()
+                 for body, (mesh, _) in zip(bodies, loose)]
+        return still, poses
 
-    def _corners_now(self, body: int, com_corners: np.ndarray) -> np.ndarray:
+    def _world_from_com(self, body: int) -> Pose:
         position, orientation = self._client.pb.getBasePositionAndOrientation(body,
                                                                               physicsClientId=self._client.client_id)
-        return Pose.from_pybullet(position, orientation).apply(com_corners)
+        return Pose.from_pybullet(position, orientation)
+
+    def _corners_now(self, body: int, com_corners: np.ndarray) -> np.ndarray:
+        return self._world_from_com(body).apply(com_corners)
 
     def close(self) -> None:
         if self._client is not None:

@@ -64,6 +64,10 @@ CAPACITY_FRACTION = 0.75  # rectangles in a ring pack no denser than this: fail 
 COMFORTABLE_FRACTION = 0.6  # places beyond this fraction of the ring's depth are tried last ...
 FAR_PENALTY = 3.0  # ... as if each metre beyond it were this many metres farther from the jig
 ANGLE_STEP_DEG = 3.0
+SETTLE_MAX_TILT_DEG = 20.0  # a part laid down that settles turned farther than this from its rest pose fell over ...
+SETTLE_MAX_DROP_M = 0.02  # ... and one whose centre of mass sank farther than this fell off its pedestal;
+SETTLE_MAX_COM_HEIGHT_RATIO = 1.0  # it must lie low: its centre of mass at most this times its footprint's half
+# width above the pedestal's top (it tips over only past 45 degrees)
 CHOCK_LENGTH_M = 0.02  # a chock's extent along the part ...
 CHOCK_WIDTH_M = 0.01  # ... and across it
 CHOCK_END_INSET_M = 0.002  # chocks stop this short of the part's ends
@@ -209,13 +213,14 @@ def upright_rest_pose(mesh: trimesh.Trimesh, world_from_part_rotation: np.ndarra
     return transform
 
 
-def pedestal_for(half_extent_xy: np.ndarray, world_from_rest: Pose, height_m: float) -> Pedestal:
+def pedestal_for(half_extent_xy: np.ndarray, world_from_rest: Pose, height_m: float, wide: bool = False) -> Pedestal:
     """A pedestal under a footprint of half extents ``half_extent_xy`` centred in the ``rest`` frame (whose x-y
-    plane is the pedestal's top), inset for the fingers along the footprint's wide sides."""
+    plane is the pedestal's top), inset for the fingers along the footprint's wide sides; ``wide``: inset by
+    :data:`NARROW_INSET_M` only, all round (a frame lying flat falls around the inset one, through its opening)."""
     extent = 2.0 * np.asarray(half_extent_xy, dtype=np.float64)
     inset = np.minimum(FINGER_CLEARANCE_M, 0.5 * (1.0 - MIN_PAD_FRACTION) * extent)
     # across a narrow part the fingers close from beside it, not from under it: support it full width
-    inset = np.where(extent < NARROW_PART_M, NARROW_INSET_M, inset)
+    inset = np.where((extent < NARROW_PART_M) | wide, NARROW_INSET_M, inset)
     size = np.maximum(extent - 2 * inset, np.minimum(extent, NARROW_MIN_WIDTH_M))
     rest_from_pedestal = Pose([0.0, 0.0, -0.5 * height_m], [1.0, 0.0, 0.0, 0.0])
     return Pedestal((float(size[0]), float(size[1]), height_m), world_from_rest @ rest_from_pedestal)
@@ -230,14 +235,28 @@ def chocks_for(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: floa
     rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
     span = rested.max(axis=0) - rested.min(axis=0)
     along = 0 if span[0] >= span[1] else 1
-    across = 1 - along
-    if span[along] < ELONGATED_RATIO * span[across]:
+    if span[along] < ELONGATED_RATIO * span[1 - along]:
         return None
     com_rest = rest_from_part[:3, :3] @ _centre_of_mass(mesh) + rest_from_part[:3, 3]
     touching = _touching(mesh, rest_from_part, support_rest_xy)
     if len(touching) < 2 or not (touching[:, along].min() + SUPPORT_MARGIN_M < com_rest[along]
                                  < touching[:, along].max() - SUPPORT_MARGIN_M):
         return None
+    return cradle_chocks(mesh, rest_from_part, height_m)
+
+
+def cradle_chocks(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: float) -> tuple | None:
+    """The chocks of :func:`chocks_for` for an elongated part lying in its rest pose, whatever it touches the
+    support with (whether it rests there is the caller's to judge), or None when it is not elongated: a pair of
+    posts beside it near each end, where its cross-section comes below the chocks' top (a tapered leg's thin end lies
+    higher: its chocks move inwards)."""
+    rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
+    span = rested.max(axis=0) - rested.min(axis=0)
+    along = 0 if span[0] >= span[1] else 1
+    across = 1 - along
+    if span[along] < ELONGATED_RATIO * span[across]:
+        return None
+    com_along = float((rest_from_part[:3, :3] @ _centre_of_mass(mesh) + rest_from_part[:3, 3])[along])
     rise = min(CHOCK_HEIGHT_FRACTION * span[2], CHOCK_MAX_HEIGHT_M)  # low, for a round leg lying down
     if span[2] > ELONGATED_RATIO * span[across]:
         # a board standing on its edge leans on its chocks by their clearance over their height: they rise far
@@ -246,9 +265,12 @@ def chocks_for(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: floa
         rise = max(rise, min(CHOCK_CLEARANCE_M * span[2] / CHOCK_LEAN_M, CHOCK_TALL_FRACTION * span[2]))
     chocks = []
     for end in (rested[:, along].min() + CHOCK_END_INSET_M, rested[:, along].max() - CHOCK_END_INSET_M):
-        inner = end + CHOCK_LENGTH_M if end < com_rest[along] else end - CHOCK_LENGTH_M
-        lo, hi = min(end, inner), max(end, inner)
-        beside = _section_below(mesh, rest_from_part, along, 0.5 * (lo + hi), rise)
+        inward = 1.0 if end < com_along else -1.0
+        beside = np.zeros((0, 3))
+        while len(beside) == 0 and inward * (com_along - end) > CHOCK_LENGTH_M:
+            lo, hi = sorted((end, end + inward * CHOCK_LENGTH_M))
+            beside = _section_below(mesh, rest_from_part, along, 0.5 * (lo + hi), rise)
+            end += inward * CHOCK_LENGTH_M
         if len(beside) == 0:
             return None
         for side in (-1.0, 1.0):
@@ -464,7 +486,9 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
                  deadline: float = float("inf"),
                  target_rotations: dict[str, np.ndarray] | None = None,
                  rests: Callable[[list[tuple[trimesh.Trimesh, Pose]], list[tuple[trimesh.Trimesh, Pose]]], bool]
-                 | None = None) -> list[KittingSlot]:
+                 | None = None,
+                 settles: Callable[[list[tuple[trimesh.Trimesh, Pose]], list[tuple[trimesh.Trimesh, Pose]]],
+                                   list[Pose] | None] | None = None) -> list[KittingSlot]:
     """A slot for every part (returned in the order given), the largest footprints laid out first, each in the
     free place nearest ``prefer_near_xy`` (usually the jig). ``names`` must be in assembly order: a part is
     only an obstacle to the picks of parts assembled before it (the others are gone by then), and a board may
@@ -481,12 +505,16 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
     ``rests(loose, fixed)``, when given, confirms with physics what the geometric checks judge: whether the
     ``loose`` (mesh, world_from_part) bodies stay where they lie on the ``fixed`` (mesh, world_from_body) ones (e.g.
     :class:`cell.resting.PhysicsRestCheck`). It is asked once per part and rest pose on its pedestal (the same
-    anywhere on the flat table) and for every stack place.
+    anywhere on the flat table) and for every stack place. ``settles(loose, fixed)``, when given, says where such
+    bodies come to rest (world_from_part each, or None when they do not, e.g.
+    :meth:`cell.resting.PhysicsRestCheck.settle`): a part with no rest pose that the geometry or ``rests`` accepts on
+    its pedestal is laid down on it and left to settle (a dished board tips onto the pedestal's rim, a tapered leg
+    onto its chocks), and lies where it settles (:data:`SETTLE_MAX_TILT_DEG`, :data:`SETTLE_MAX_DROP_M`).
     """
     reach = reach or Reach()
     layout = _Layout(names, dict(zip(names, meshes)), area, np.asarray(prefer_near_xy, dtype=np.float64), reach)
     layout.target_rotations = dict(target_rotations or {})
-    layout.rests = rests
+    layout.rests, layout.settles = rests, settles
     needed, offered = footprint_area_m2([m for m in meshes if not _is_board(m)], area.gap_m), ring_area_m2(area)
     boards = [m for m in meshes if _is_board(m)]
     needed += footprint_area_m2(sorted(boards, key=lambda m: -np.prod(np.sort(m.extents)[1:]))[:1], area.gap_m)
@@ -504,8 +532,8 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
                                OUT_OF_TIME, name)
         chosen = layout.place(name, candidates[name], grasp_ok_at_target)
         if chosen is None:
-            raise KittingError(*_why_not(name, mesh, candidates[name], grasp_ok_at_target, area, layout.prefer),
-                               name)
+            raise KittingError(*_why_not(name, mesh, candidates[name], grasp_ok_at_target, area, layout.prefer,
+                                         name in layout.unrested), name)
         layout.slots.append(chosen)
     slots = [dataclasses.replace(slot, grasp=layout.options[slot.part][0][0], reach=layout.options[slot.part][0][1],
                                  alternatives=tuple(layout.options[slot.part][1:]))
@@ -529,8 +557,10 @@ class _Layout:
         self.options: dict[str, list[tuple[Grasp, object]]] = {}  # per slot: (grasp, reach) still possible
         self.usable_at_target: dict[tuple, bool] = {}
         self.places_cache: dict[tuple, list] = {}
-        self.chocks_cache: dict[tuple, tuple | None] = {}
+        self.support_cache: dict[tuple, Pedestal | None] = {}
         self.rests = None  # physics check (loose bodies, fixed bodies) -> bool, see plan_kitting
+        self.settles = None  # physics (loose bodies, fixed bodies) -> where they come to rest, see plan_kitting
+        self.unrested: set[str] = set()  # parts with no pose that rests on a pedestal
 
     def rank(self, name: str) -> int:
         return self.order.index(name)
@@ -557,7 +587,7 @@ class _Layout:
         if name in self.target_rotations:  # lying as it sits in the assembly, its target grasps work from above
             poses = [(upright_rest_pose(mesh, self.target_rotations[name]), float("nan"))] + poses
         # on the ground, the poses where more of the grasps wanted at the target pick from above come first
-        ground = sorted((pose for pose in poses if self._chocks(name, pose[0]) is not None),
+        ground = sorted(self._ground_poses(name, poses),
                         key=lambda pose: -_picks_from_above(grasps[:SCORED_GRASPS], pose[0]))
         stack_first = _is_board(mesh)
         for attempt in ("stack", "ground") if stack_first else ("ground", "stack"):
@@ -582,9 +612,70 @@ class _Layout:
                         return slot
         return None
 
+    def _ground_poses(self, name: str, poses: list[tuple[np.ndarray, float]]) -> list[tuple[np.ndarray, float]]:
+        """The rest poses (rest_from_part, probability) in which the part rests on its pedestal as the geometry
+        and the physics check judge them; and where it settles under physics (:meth:`_settled`) when laid down
+        as it sits in the assembly (the first of ``poses``, when ``upright``), or in the first
+        :data:`MAX_GROUND_POSES` when it rests in none."""
+        ground = [pose for pose in poses if self._support(name, pose[0]) is not None]
+        if self.settles is not None:
+            upright = name in self.target_rotations and self._support(name, poses[0][0]) is None
+            tried = poses[:MAX_GROUND_POSES] if not ground else poses[:1] if upright else []
+            settled = ((self._settled(name, rest_from_part), p) for rest_from_part, p in tried)
+            ground += [(rest_from_part, p) for rest_from_part, p in settled if rest_from_part is not None]
+        if not ground:
+            self.unrested.add(name)
+        return ground
+
+    def _settled(self, name: str, rest_from_part: np.ndarray) -> np.ndarray | None:
+        """``rest_from_part`` of the part laid down in this pose on its pedestal (cradled if elongated; else wide,
+        when the part does not settle on the usual one) once it has settled there under physics
+        (:attr:`settles`), centred over the same pedestal made for it as it lies, which it must rest on too;
+        None when it does not settle, or tips beyond :data:`SETTLE_MAX_TILT_DEG` or its centre of mass sinks
+        beyond :data:`SETTLE_MAX_DROP_M` on the way (it fell over, off or through), or it does not lie low
+        (:data:`SETTLE_MAX_COM_HEIGHT_RATIO`)."""
+        mesh = self.meshes[name]
+        com = _centre_of_mass(mesh)
+        for wide in (False, True):
+            pedestal = self._pedestal_at_rest(name, rest_from_part, wide)
+            settled = self.settles([(mesh, Pose.from_matrix(rest_from_part))], self._fixed(pedestal))
+            if settled is None:
+                continue
+            lying = settled[0].matrix()
+            turned = lying[:3, :3] @ rest_from_part[:3, :3].T
+            tilt = np.degrees(np.arccos(np.clip(turned[2, 2], -1.0, 1.0)))  # how far its up axis turned
+            drop = float((rest_from_part[:3, :3] @ com)[2] + rest_from_part[2, 3] - (lying[:3, :3] @ com)[2]
+                         - lying[2, 3])
+            moved = mesh.vertices @ lying[:3, :3].T + lying[:3, 3]
+            half = 0.5 * np.ptp(moved[:, :2], axis=0)
+            # lying low: untouched, a part standing on a narrow base balances, and tips over at the first nudge
+            low = (lying[:3, :3] @ com)[2] + lying[2, 3] <= SETTLE_MAX_COM_HEIGHT_RATIO * half.min()
+            if tilt > SETTLE_MAX_TILT_DEG or drop > SETTLE_MAX_DROP_M or not low:
+                continue
+            lying[:2, 3] -= 0.5 * (moved.min(axis=0) + moved.max(axis=0))[:2]  # centred in x-y, as rest poses are
+            pedestal = self._pedestal_at_rest(name, lying, wide)
+            if self.rests is not None and not self.rests([(mesh, Pose.from_matrix(lying))], self._fixed(pedestal)):
+                continue
+            self.support_cache[(name, np.round(lying, 9).tobytes())] = pedestal
+            return lying
+        return None
+
+    def _pedestal_at_rest(self, name: str, rest_from_part: np.ndarray, wide: bool = False) -> Pedestal:
+        """The pedestal made for the part in this rest pose (rest frame: its top at z = 0 under the footprint's
+        centre), with chocks if the part is elongated."""
+        mesh = self.meshes[name]
+        pedestal = pedestal_for(_rest_half(mesh, rest_from_part)[0], Pose([0, 0, 0], [1, 0, 0, 0]),
+                                self.area.pedestal_height_m, wide)
+        return dataclasses.replace(pedestal, chocks=cradle_chocks(mesh, rest_from_part, self.area.pedestal_height_m)
+                                   or ())
+
+    def _fixed(self, pedestal: Pedestal) -> list[tuple[trimesh.Trimesh, Pose]]:
+        """A rest-frame pedestal and the table under it, for the physics checks."""
+        return [(pedestal.mesh(), pedestal.world_from_pedestal), self._table_slab(-self.area.pedestal_height_m)]
+
     def _ground_places(self, name: str, rest_from_part: np.ndarray):
-        chocks = self._chocks(name, rest_from_part)
-        if chocks is None:
+        at_rest = self._support(name, rest_from_part)
+        if at_rest is None:
             return  # it does not rest in this pose, anywhere: try the next rest pose
         mesh_half, long_is_x = _rest_half(self.meshes[name], rest_from_part)
         half_ring = np.array([max(mesh_half), min(mesh_half)])
@@ -605,8 +696,7 @@ class _Layout:
             yaw = long_yaw if long_is_x else long_yaw - np.pi / 2  # the rest frame's long axis along long_yaw
             world_from_rest = Pose([xy[0], xy[1], self.area.table_z_m + self.area.pedestal_height_m],
                                    [1, 0, 0, 0]) @ _yaw(yaw)
-            pedestal = dataclasses.replace(pedestal_for(mesh_half, world_from_rest, self.area.pedestal_height_m),
-                                           chocks=chocks)
+            pedestal = dataclasses.replace(at_rest, world_from_pedestal=world_from_rest @ at_rest.world_from_pedestal)
             yield world_from_rest, _corners(xy, long_yaw, half_ring), pedestal, None
 
     def _stack_places(self, name: str, rest_from_part: np.ndarray):
@@ -656,24 +746,23 @@ class _Layout:
         fixed = [(s.pedestal.mesh(), s.pedestal.world_from_pedestal) for s in members if s.pedestal is not None]
         return bool(self.rests(loose, fixed + [self._table_slab(self.area.table_z_m)]))
 
-    def _chocks(self, name: str, rest_from_part: np.ndarray) -> tuple | None:
-        """How the part rests in this pose on its pedestal, the same anywhere: () on the pedestal alone, the
-        chocks that cradle it, or None when it does not rest (computed once per part and pose)."""
+    def _support(self, name: str, rest_from_part: np.ndarray) -> Pedestal | None:
+        """The pedestal (rest frame, see :meth:`_pedestal_at_rest`) the part rests on in this pose, the same
+        anywhere: alone, or with the chocks that cradle it; None when it does not rest there (computed once per
+        part and pose; :meth:`_settled` adds the poses it finds)."""
         key = (name, np.round(rest_from_part, 9).tobytes())
-        if key not in self.chocks_cache:
+        if key not in self.support_cache:
             mesh = self.meshes[name]
             pedestal = pedestal_for(_rest_half(mesh, rest_from_part)[0], Pose([0, 0, 0], [1, 0, 0, 0]),
                                     self.area.pedestal_height_m)
             chocks = () if self._supported(name, rest_from_part, pedestal) else chocks_for(
                 mesh, rest_from_part, self.area.pedestal_height_m, self._top(pedestal))
-            if chocks is not None and self.rests is not None:  # and it stays there under physics
-                pedestal = dataclasses.replace(pedestal, chocks=chocks)
-                fixed = [(pedestal.mesh(), pedestal.world_from_pedestal),
-                         self._table_slab(-self.area.pedestal_height_m)]
-                if not self.rests([(mesh, Pose.from_matrix(rest_from_part))], fixed):
-                    chocks = None
-            self.chocks_cache[key] = chocks
-        return self.chocks_cache[key]
+            pedestal = None if chocks is None else dataclasses.replace(pedestal, chocks=chocks)
+            if pedestal is not None and self.rests is not None:  # and it stays there under physics
+                if not self.rests([(mesh, Pose.from_matrix(rest_from_part))], self._fixed(pedestal)):
+                    pedestal = None
+            self.support_cache[key] = pedestal
+        return self.support_cache[key]
 
     @staticmethod
     def _table_slab(top_z_m: float) -> tuple[trimesh.Trimesh, Pose]:
@@ -849,7 +938,7 @@ def _grasp_key(grasp: Grasp) -> tuple:
             round(grasp.opening_m, 9))
 
 
-def _why_not(name, mesh, grasps, grasp_ok_at_target, area, prefer) -> tuple[str, str]:
+def _why_not(name, mesh, grasps, grasp_ok_at_target, area, prefer, unrested: bool = False) -> tuple[str, str]:
     """(message, :class:`KittingError` kind) of why part ``name`` found no slot."""
     if not grasps:
         return f"part {name!r}: no grasp at all", NO_GRASP
@@ -862,5 +951,8 @@ def _why_not(name, mesh, grasps, grasp_ok_at_target, area, prefer) -> tuple[str,
         return (f"part {name!r}: its footprint ({2 * max(half):.2f} x {2 * min(half):.2f} m) does not fit the kitting "
                 f"ring ({area.inner_radius_m:.2f}-{area.outer_radius_m:.2f} m around the robot, on the table)",
                 TOO_LARGE)
+    if unrested:
+        return (f"part {name!r}: it rests in none of its stable poses on a pedestal (its underside does not stand on "
+                "the pedestal's top, and it does not settle there), and no board to lie on takes it", NO_PLACE)
     return (f"part {name!r}: no free place in the kitting ring where one grasp works at the pick (reachable, clear "
             "of its neighbours) and at its target", NO_PLACE)

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pybullet as pb
+import pytest
 import trimesh
 
 from cell.bodies import add_convex_body
@@ -146,3 +147,55 @@ def test_a_thin_panel_standing_on_its_edge_gets_chocks_tall_enough_to_keep_it_up
                                                             pose.quat_wxyz)) for size, pose in chocks)
     assert _sway_of_top_mm(panel, chocks) < 10.0
     assert _sway_of_top_mm(panel, low) > 20.0
+
+
+def _square_frame(outer_m: float, bar_m: float, thickness_m: float) -> trimesh.Trimesh:
+    """A flat square frame of four bars (a seat frame or a picture frame) in the x-y plane, its opening
+    ``outer_m - 2 bar_m`` wide."""
+    bars = []
+    for side in (-1.0, 1.0):
+        offset = side * (outer_m - bar_m) / 2
+        bars.append(trimesh.creation.box((outer_m, bar_m, thickness_m),
+                                         transform=trimesh.transformations.translation_matrix((0.0, offset, 0.0))))
+        bars.append(trimesh.creation.box((bar_m, outer_m - 2 * bar_m, thickness_m),
+                                         transform=trimesh.transformations.translation_matrix((offset, 0.0, 0.0))))
+    return trimesh.util.concatenate(bars)
+
+
+def test_a_frame_lying_flat_falls_through_its_usual_pedestal_and_settles_on_a_wide_one():
+    """A 24 cm square frame of 2 cm bars lying flat: the usual pedestal, inset 3 cm for the fingers, fits its 20 cm
+    opening. Its underside stands on nothing there, and physics drops it through to the table. Given the physics'
+    settling, kitting lays it flat as it sits in its assembly on a pedestal inset 5 mm, where it rests;
+    without it, it stands the frame on an edge."""
+    from planning.grasp import antipodal_grasps
+    from planning.kitting import NARROW_INSET_M, KittingArea, plan_kitting
+
+    frame = _square_frame(0.24, 0.02, 0.03)
+    flat = upright_rest_pose(frame, np.eye(3))
+    usual = pedestal_for(_rest_half(frame, flat)[0], IDENTITY, PEDESTAL_HEIGHT_M)
+    assert max(usual.size_m[:2]) < 0.24 - 2 * 0.02  # it fits the opening
+    top = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * 0.5 * np.array(usual.size_m[:2])
+    assert not rests_stably(frame, flat, top)
+    area = KittingArea(centre_xy=(0.0, 0.0), inner_radius_m=0.32, outer_radius_m=0.72, table_min_xy=(-0.55, -0.8),
+                       table_max_xy=(0.95, 0.8), table_z_m=0.0, pedestal_height_m=PEDESTAL_HEIGHT_M,
+                       keep_out=(((0.25, -0.25), (0.75, 0.25)),), gap_m=0.06)
+    grasps = [g for g in antipodal_grasps(frame, np.random.default_rng(0)) if g.part_from_tcp.rotation[2, 2] < -0.9]
+    assert grasps
+    kwargs = dict(target_rotations={"frame": np.eye(3)})
+    table = trimesh.creation.box((4.0, 4.0, 0.02))
+    with PhysicsRestCheck() as check:  # the pedestal's top at z = 0 (rest frame), the table under it
+        fixed = [(usual.mesh(), usual.world_from_pedestal), (table, Pose([0, 0, -PEDESTAL_HEIGHT_M - 0.01],
+                                                                         [1, 0, 0, 0]))]
+        assert check.settle([(frame, Pose.from_matrix(flat))], fixed)[0].position[2] < -0.1  # on the table
+        edge = plan_kitting(["frame"], [frame], {"frame": grasps}, lambda name, grasp: True, area, rests=check,
+                            **kwargs)[0]
+        assert abs(edge.world_from_part.rotation[2, 2]) < 0.01  # standing on an edge
+        slot = plan_kitting(["frame"], [frame], {"frame": grasps}, lambda name, grasp: True, area, rests=check,
+                            settles=check.settle, **kwargs)[0]
+        assert slot.world_from_part.rotation[2, 2] > 0.999  # flat, as in its assembly
+        assert slot.pedestal.size_m[:2] == pytest.approx((0.24 - 2 * NARROW_INSET_M,) * 2)
+        pedestal_top = slot.pedestal.world_from_pedestal.position[2] + PEDESTAL_HEIGHT_M / 2
+        lowest = slot.world_from_part.apply(frame.vertices)[:, 2].min()
+        assert abs(lowest - pedestal_top) < 0.001  # lying on it (the simulated body is inset 0.25 mm)
+        assert check([(frame, slot.world_from_part)], [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal),
+                                                       (table, Pose([0, 0, -0.01], [1, 0, 0, 0]))])
