@@ -242,14 +242,15 @@ def chocks_for(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: floa
     if len(touching) < 2 or not (touching[:, along].min() + SUPPORT_MARGIN_M < com_rest[along]
                                  < touching[:, along].max() - SUPPORT_MARGIN_M):
         return None
-    return cradle_chocks(mesh, rest_from_part, height_m)
+    return cradle_chocks(mesh, rest_from_part, height_m, inwards=False)
 
 
-def cradle_chocks(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: float) -> tuple | None:
+def cradle_chocks(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: float,
+                  inwards: bool = True) -> tuple | None:
     """The chocks of :func:`chocks_for` for an elongated part lying in its rest pose, whatever it touches the
     support with (whether it rests there is the caller's to judge), or None when it is not elongated: a pair of
-    posts beside it near each end, where its cross-section comes below the chocks' top (a tapered leg's thin end lies
-    higher: its chocks move inwards)."""
+    posts beside it at each end, where its cross-section comes below the chocks' top; ``inwards``: else nearer its
+    middle (a tapered leg's thin end lies above them), else None."""
     rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
     span = rested.max(axis=0) - rested.min(axis=0)
     along = 0 if span[0] >= span[1] else 1
@@ -266,10 +267,12 @@ def cradle_chocks(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: f
     chocks = []
     for end in (rested[:, along].min() + CHOCK_END_INSET_M, rested[:, along].max() - CHOCK_END_INSET_M):
         inward = 1.0 if end < com_along else -1.0
-        beside = np.zeros((0, 3))
-        while len(beside) == 0 and inward * (com_along - end) > CHOCK_LENGTH_M:
+        steps = max(int(inward * (com_along - end) // CHOCK_LENGTH_M), 1) if inwards else 1  # up to its middle
+        for _ in range(steps):
             lo, hi = sorted((end, end + inward * CHOCK_LENGTH_M))
             beside = _section_below(mesh, rest_from_part, along, 0.5 * (lo + hi), rise)
+            if len(beside):
+                break
             end += inward * CHOCK_LENGTH_M
         if len(beside) == 0:
             return None
