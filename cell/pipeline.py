@@ -20,6 +20,11 @@ from planning.assembly import Assembly, AssemblyPart
 from planning.pose import Pose
 
 REPAIR_GIVEN_POSES = False  # given (--poses) targets are taken as they are; predicted ones are repaired
+MAX_GIVEN_OVERLAP_M = 0.03
+"""Given targets may let two parts' convex pieces overlap by this much (metres), and the simulation lets them fit
+(:mod:`cell.simulate`): models of real furniture draw dowels without their holes and panels into each other, and
+convex pieces bulge (the deepest of the 42 models in ``../shared/furniture``: 22.9 mm, where the meshes overlap by
+3.7 mm). A deeper overlap is taken for a wrong pose (a part placed at another's position, a wrong unit)."""
 ANIMATION_FRAME_S = 0.4  # simulated seconds between the frames of animation.gif
 ANIMATION_FPS = 10.0  # its playback: 4x the simulated speed
 
@@ -48,6 +53,8 @@ class Pipeline:
         assembly = Assembly(self.parts.files[0].parent.parent.name or "object",
                             [AssemblyPart(n, m, poses[n], f"parts/{f.name}")
                              for n, m, f in zip(self.parts.names, self.parts.meshes, self.parts.files)])
+        if self.given is not None:
+            self._check_given_overlaps(assembly)
         with self.console.stage("repair", "contacts, interpenetration, alignment"):
             assembly = self._repair(assembly)
         for part in assembly.parts:
@@ -77,6 +84,19 @@ class Pipeline:
             self.entries[name]["predicted_camera_from_part"] = pose_json(prediction.camera_from_part[name])
             self.entries[name]["predicted_assembly_from_part"] = pose_json(prediction.assembly_from_part[name])
         return dict(prediction.assembly_from_part)
+
+    def _check_given_overlaps(self, assembly: Assembly) -> None:
+        from planning.collision import ConvexPart, overlapping_pairs
+
+        convex = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
+        pairs = overlapping_pairs(convex, [p.assembly_from_part for p in assembly.parts], MAX_GIVEN_OVERLAP_M)
+        if pairs:
+            a, b, depth = pairs[0]
+            more = f" ({len(pairs) - 1} more pair(s) too)" if len(pairs) > 1 else ""
+            raise BadInput(f"{self.args.poses}: parts {a!r} and {b!r} overlap by {depth * 1000:.0f} mm at their "
+                           f"targets{more}, more than the {MAX_GIVEN_OVERLAP_M * 1000:.0f} mm a connector's hole or "
+                           "a model's slack accounts for; check their poses (one part placed at another's position, "
+                           "or a wrong unit)")
 
     def _repair(self, assembly: Assembly) -> Assembly:
         from planning.collision import ConvexPart

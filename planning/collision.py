@@ -9,6 +9,7 @@ conservative advancement).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import fcl
@@ -178,6 +179,19 @@ def signed_distance(part_a: ConvexPart, world_from_a: Pose, part_b: ConvexPart, 
         if -depth < best.distance_m:
             best = DistanceResult(-depth, normal_ab=normal)
     return best
+
+
+def overlapping_pairs(parts: Sequence[ConvexPart], poses: Sequence[Pose],
+                      min_depth_m: float = 0.0) -> list[tuple[str, str, float]]:
+    """Pairs of the posed parts (``poses[k]`` places ``parts[k]``) whose convex pieces overlap by more than
+    ``min_depth_m``: (name a, name b, depth in metres), deepest first."""
+    pairs = []
+    for i in range(len(parts)):
+        for j in range(i + 1, len(parts)):
+            depth = -signed_distance(parts[i], poses[i], parts[j], poses[j], 0.0).distance_m
+            if depth > min_depth_m:
+                pairs.append((parts[i].name, parts[j].name, float(depth)))
+    return sorted(pairs, key=lambda pair: -pair[2])
 
 
 def shrunk(part: ConvexPart, margin_m: float) -> ConvexPart:

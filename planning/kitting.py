@@ -65,9 +65,9 @@ COMFORTABLE_FRACTION = 0.6  # places beyond this fraction of the ring's depth ar
 FAR_PENALTY = 3.0  # ... as if each metre beyond it were this many metres farther from the jig
 ANGLE_STEP_DEG = 3.0
 SETTLE_MAX_TILT_DEG = 20.0  # a part laid down that settles turned farther than this from its rest pose fell over ...
-SETTLE_MAX_DROP_M = 0.02  # ... and one whose centre of mass sank farther than this fell off its pedestal;
-SETTLE_MAX_COM_HEIGHT_RATIO = 1.0  # it must lie low: its centre of mass at most this times its footprint's half
-# width above the pedestal's top (it tips over only past 45 degrees)
+SETTLE_MAX_DROP_M = 0.02  # ... one whose centre of mass sank farther than this fell off (or through) its pedestal
+SETTLE_MAX_COM_HEIGHT_RATIO = 1.0  # ... and it must lie low: its centre of mass at most this times its footprint's
+# half width above the pedestal's top (it tips over only past 45 degrees)
 CHOCK_LENGTH_M = 0.02  # a chock's extent along the part ...
 CHOCK_WIDTH_M = 0.01  # ... and across it
 CHOCK_END_INSET_M = 0.002  # chocks stop this short of the part's ends
@@ -617,9 +617,9 @@ class _Layout:
 
     def _ground_poses(self, name: str, poses: list[tuple[np.ndarray, float]]) -> list[tuple[np.ndarray, float]]:
         """The rest poses (rest_from_part, probability) in which the part rests on its pedestal as the geometry
-        and the physics check judge them; and where it settles under physics (:meth:`_settled`) when laid down
-        as it sits in the assembly (the first of ``poses``, when ``upright``), or in the first
-        :data:`MAX_GROUND_POSES` when it rests in none."""
+        and the physics check judge them; and the poses it settles in under physics (:meth:`_settled`) when laid
+        down as it sits in the assembly (the first of ``poses`` when it has a target rotation) and that does not
+        rest as it is, or laid down in each of the first :data:`MAX_GROUND_POSES` when none rests."""
         ground = [pose for pose in poses if self._support(name, pose[0]) is not None]
         if self.settles is not None:
             upright = name in self.target_rotations and self._support(name, poses[0][0]) is None

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from planning.collision import ConvexPart, signed_distance
+from planning.collision import ConvexPart, overlapping_pairs, signed_distance
 from planning.pose import Pose, matrix_to_quat, quat_angle_rad
 
 
@@ -74,20 +74,15 @@ def _clamped(part: ConvexPart, original: Pose, candidate: Pose, settings: Repair
     return Pose(target - candidate.rotation @ centre, candidate.quat_wxyz)
 
 
-def _deepest_penetration(parts: list[ConvexPart], poses: list[Pose], cutoff_m: float) -> float:
-    deepest = 0.0
-    for i in range(len(parts)):
-        for j in range(i + 1, len(parts)):
-            d = signed_distance(parts[i], poses[i], parts[j], poses[j], cutoff_m).distance_m
-            deepest = max(deepest, -d)
-    return deepest
+def _deepest_penetration(parts: list[ConvexPart], poses: list[Pose]) -> float:
+    return max((depth for _, _, depth in overlapping_pairs(parts, poses)), default=0.0)
 
 
 def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSettings = RepairSettings(),
                  floor_z_m: float = 0.0) -> tuple[list[Pose], RepairReport]:
     """Repaired ``assembly_from_part`` poses (same order as ``parts``) and the report."""
     original = list(poses)
-    before = _deepest_penetration(parts, original, settings.snap_distance_m)
+    before = _deepest_penetration(parts, original)
     current = []
     for part, pose in zip(parts, original):
         rotation = snap_rotation_to_axes(pose.rotation, min(settings.align_tolerance_deg, settings.max_rotation_deg))
@@ -120,7 +115,7 @@ def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSet
         moved = np.where(counts[:, None] > 0, shifts / np.maximum(counts, 1)[:, None], 0.0)
         current = [_clamped(p, o, Pose(c.position + m, c.quat_wxyz), settings)
                    for p, o, c, m in zip(parts, original, current, moved)]
-    after = _deepest_penetration(parts, current, settings.snap_distance_m)
+    after = _deepest_penetration(parts, current)
     report = RepairReport(
         translation_m={p.name: float(np.linalg.norm(c.apply(_centre(p)) - o.apply(_centre(p))))
                        for p, o, c in zip(parts, original, current)},

@@ -178,13 +178,18 @@ def bad_inputs(tmp: Path, chair: Path) -> dict[str, tuple[list[str], str]]:
     tall = _parts_folder(tmp / "tall", {"pole": trimesh.creation.box([0.05, 0.05, 0.1])})
     cases["target out of reach"] = (["--parts", str(tall), "--poses", str(_poses(tmp / "far", [
         _pose_entry("pole", position=(0.0, 0.0, 1.6))]))], "out of the Panda's reach")
+    cube = trimesh.creation.box([0.1, 0.1, 0.1])
+    sunk = _parts_folder(tmp / "sunk", {"a": cube, "b": cube})
+    cases["parts sunk into each other"] = (["--parts", str(sunk), "--poses", str(_poses(tmp / "sunk", [
+        _pose_entry("a", position=(0.0, 0.0, 0.05)), _pose_entry("b", position=(0.04, 0.0, 0.05))]))],
+        "parts 'a' and 'b' overlap by 60 mm at their targets")
     return cases
 
 
 CASES = ["missing image", "unreadable image", "grayscale image", "RGBA image", "non-square image", "huge image",
          "missing parts folder", "empty parts folder", "non-mesh file", "corrupt mesh", "empty mesh",
          "degenerate mesh", "more than 20 parts", "parts in millimetres", "NaN pose", "non-unit quaternion",
-         "missing pose", "extra pose", "target out of reach"]
+         "missing pose", "extra pose", "target out of reach", "parts sunk into each other"]
 
 
 @pytest.mark.parametrize("case", CASES)
