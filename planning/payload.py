@@ -55,12 +55,13 @@ PANDA_LINK_DYNAMICS = {
 """Link masses (kg) and principal inertias (kg m^2) identified by Gaz et al. (RA-L 2019); the inertias in
 pybullet_data's URDF (0.1 kg m^2 for every link) are placeholders that the wrist's 12 Nm cannot accelerate as the
 real arm does. The simulator gives the links these; the holding-torque model uses the masses."""
-HOLDING_TORQUE_FRACTION = 0.9
+HOLDING_TORQUE_FRACTION = 0.8
 """A configuration that holds the payload may need at most this fraction of each joint's torque limit against
 gravity alone: the rest accelerates the arm and its load (slowly, see :func:`carry_limits`) and corrects tracking
 errors. (The simulated wrist sagged 10-28 degrees off its path, and the part hit the assembly, carrying a 3.3 kg
-table top by its edge where gravity alone needed up to 134% of joint 5's 12 N m; it followed within 0.4 mm where
-gravity needed 93%.)"""
+table top by its edge where gravity alone needed up to 134% of joint 5's 12 N m. At 90%, carrying a 3.8 kg top
+whose hold needed 86-90% of joint 5's limit, joints 5 and 6 saturated on the way, the wrist fell 0.8 rad behind
+and whipped through at 2.8 rad/s, beyond joint 6's velocity limit.)"""
 MIN_SCALE = 0.1
 """Accelerations are never scaled below this fraction (velocities: its square root)."""
 GRAVITY_M_S2 = 9.81

@@ -94,7 +94,7 @@ def test_a_heavy_part_held_far_out_is_refused_where_the_wrist_cannot_hold_it():
     held_at_centre = HoldingTorques(checker, top, Pose.identity())
     qs = np.random.default_rng(3).uniform(-2.0, 2.0, (200, 7))
     edge, centre = held_at_edge.within(qs), held_at_centre.within(qs)
-    assert centre.mean() > 0.95  # 3.3 kg at the TCP: almost anywhere
+    assert centre.mean() > 0.9  # 3.3 kg at the TCP: almost anywhere
     assert 0.1 < edge.mean() < 0.9  # 30 cm out: only where the wrist does not bear the moment
     assert not np.any(edge & ~centre)
     worst = qs[np.argmin(edge)]
