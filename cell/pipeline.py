@@ -23,7 +23,7 @@ REPAIR_GIVEN_POSES = False  # given (--poses) targets are taken as they are; pre
 MAX_GIVEN_OVERLAP_M = 0.03
 """Given targets may let two parts' convex pieces overlap by this much (metres), and the simulation lets them fit
 (:mod:`cell.simulate`): models of real furniture draw dowels without their holes and panels into each other, and
-convex pieces bulge (the deepest of the 42 models in ``../shared/furniture``: 22.9 mm, where the meshes overlap by
+convex pieces bulge (the deepest of the 42 models in ``../shared/furniture``: 23.8 mm, where the meshes overlap by
 3.7 mm). A deeper overlap is taken for a wrong pose (a part placed at another's position, a wrong unit)."""
 ANIMATION_FRAME_S = 0.4  # simulated seconds between the frames of animation.gif
 ANIMATION_FPS = 10.0  # its playback: 4x the simulated speed
