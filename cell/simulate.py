@@ -139,6 +139,8 @@ class SimSettings:
     grasp_square_deg: float = 8.0  # ... and less than this in all) is seated there by the closing fingers
     fasten_distance_m: float = 0.002  # a released part this much farther from a neighbour than planned is not fastened
     contact_distance_m: float = 0.0  # contact points at this distance or closer (negative: penetration) count
+    contact_breaking_m: float = 0.02  # PyBullet's contact breaking threshold (Bullet's default) ...
+    held_contact_breaking_m: float = 0.005  # ... and while a part is held (see :meth:`_Run._weld`)
     joint_limit_margin_rad: float = 1e-3  # a joint this far beyond its position limit breaks it
     velocity_tolerance: float = 0.03  # relative: a joint faster than (1 + this) x its velocity limit breaks it
     record_every_s: float | None = None  # simulated seconds between animation frames; None: no frames
@@ -149,7 +151,8 @@ class SimSettings:
         if not self.rate_hz >= MIN_RATE_HZ:
             raise ValueError(f"SimSettings.rate_hz must be at least {MIN_RATE_HZ:.0f} Hz, got {self.rate_hz}")
         for name in ("position_tolerance_m", "rotation_tolerance_deg", "density_kg_m3", "finger_force_n",
-                     "finger_speed_m_s", "grasp_contact_m", "fasten_distance_m"):
+                     "finger_speed_m_s", "grasp_contact_m", "fasten_distance_m", "contact_breaking_m",
+                     "held_contact_breaking_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"SimSettings.{name} must be positive, got {getattr(self, name)}")
         for name in ("settle_s", "grasp_seat_m", "grasp_seat_deg", "grasp_square_deg", "joint_clearance_m"):
@@ -685,7 +688,16 @@ class _Run:
         stops colliding with the part and the fingers stay where they closed. Contacts between the fingers or the
         hand and a welded part fight the weld, which then creeps by degrees over a carry; and PyBullet's Panda
         hulls carry a margin of about 1.1 mm, so the part would catch on the arm where the planner leaves it a
-        fraction of a millimetre (contacts between the robot and the part it holds are not reported either)."""
+        fraction of a millimetre (contacts between the robot and the part it holds are not reported either).
+
+        While a part is held, the contacts PyBullet creates from then on break once their points drift
+        :attr:`SimSettings.held_contact_breaking_m` apart (Bullet's default is 2 cm): a top sliding down between
+        two sides with a quarter of a millimetre to spare first meets each side's top edge from above, and with
+        the default that contact is kept and refreshed along its first, nearly vertical, normal while the top moves
+        down past the edge, so the gap beside it reads as a penetration and the solver jams the top centimetres high
+        (traced on procedural cabinets, whose tops then ended 4-14 mm off). Not smaller: at 1-2 mm the weld drives
+        a held part pushed onto a neighbour most of the way into it (10 of 12 mm where 5 mm stops it 2.7 mm in).
+        Contacts between resting parts keep the default, which lets stacks settle."""
         pb, cid, cell, settings = self.pb, self.cid, self.cell, self.settings
         tcp = pb.getLinkState(cell.robot, cell.panda.tcp_link, computeForwardKinematics=True, physicsClientId=cid)
         world_from_tcp = Pose.from_pybullet(tcp[4], tcp[5])
@@ -713,6 +725,7 @@ class _Run:
                                      physicsClientId=cid)
         self.held = name
         self.grasped.add(name)
+        pb.setPhysicsEngineParameter(contactBreakingThreshold=settings.held_contact_breaking_m, physicsClientId=cid)
 
     def _release(self) -> None:
         """Remove the weld and fasten the released part to its ``fasten_to`` neighbours that lie within
@@ -726,6 +739,7 @@ class _Run:
         each other (their contacts could only fight the constraints)."""
         pb, cid, cell = self.pb, self.cid, self.cell
         pb.removeConstraint(self.weld, physicsClientId=cid)
+        pb.setPhysicsEngineParameter(contactBreakingThreshold=self.settings.contact_breaking_m, physicsClientId=cid)
         name, self.held, self.weld = self.held, None, None
         self.released_from_hand = name
         body = cell.parts[name]
@@ -783,6 +797,7 @@ def simulate_program(program: Program, parts: Sequence[SimPart], static_bodies: 
         pb, cid = client.pb, client.client_id
         pb.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
         pb.setTimeStep(1.0 / settings.rate_hz, physicsClientId=cid)
+        pb.setPhysicsEngineParameter(contactBreakingThreshold=settings.contact_breaking_m, physicsClientId=cid)
         cell = _Cell(client, parts, static_bodies, world_from_robot_base, settings)
         grasps = _planned_grasps(cell, program, roles, {p.name: p for p in parts},
                                  lambda index: q[min(np.searchsorted(samples["t"], starts[index]), len(q) - 1)])
