@@ -68,6 +68,8 @@ SETTLE_MAX_TILT_DEG = 20.0  # a part laid down that settles turned farther than 
 SETTLE_MAX_DROP_M = 0.02  # ... one whose centre of mass sank farther than this fell off (or through) its pedestal
 SETTLE_MAX_COM_HEIGHT_RATIO = 1.0  # ... and it must lie low: its centre of mass at most this times its footprint's
 # half width above the pedestal's top (it tips over only past 45 degrees)
+FRAME_CUTS_M = (0.03, 0.045, 0.06, 0.08)  # a pedestal under every grasp's fingers (a frame of thin bars lying
+# on it) is cut back by one of these from one side, where its bars then overhang for the fingers
 CHOCK_LENGTH_M = 0.02  # a chock's extent along the part ...
 CHOCK_WIDTH_M = 0.01  # ... and across it
 CHOCK_END_INSET_M = 0.002  # chocks stop this short of the part's ends
@@ -564,6 +566,7 @@ class _Layout:
         self.rests = None  # physics check (loose bodies, fixed bodies) -> bool, see plan_kitting
         self.settles = None  # physics (loose bodies, fixed bodies) -> where they come to rest, see plan_kitting
         self.unrested: set[str] = set()  # parts with no pose that rests on a pedestal
+        self.fingers_freed: set[tuple] = set()  # (part, rest pose) whose pedestal :meth:`_free_fingers` checked
 
     def rank(self, name: str) -> int:
         return self.order.index(name)
@@ -595,6 +598,8 @@ class _Layout:
         stack_first = _is_board(mesh)
         for attempt in ("stack", "ground") if stack_first else ("ground", "stack"):
             for rest_from_part, probability in poses[:1] if attempt == "stack" else ground[:MAX_GROUND_POSES]:
+                if attempt == "ground":
+                    rest_from_part = self._free_fingers(name, rest_from_part, grasps, grasp_ok_at_target)
                 places = (self._stack_places(name, rest_from_part) if attempt == "stack"
                           else self._ground_places(name, rest_from_part))
                 tried, failed_xy = 0, []
@@ -638,30 +643,90 @@ class _Layout:
         beyond :data:`SETTLE_MAX_DROP_M` on the way (it fell over, off or through), or it does not lie low
         (:data:`SETTLE_MAX_COM_HEIGHT_RATIO`)."""
         mesh = self.meshes[name]
-        com = _centre_of_mass(mesh)
         for wide in (False, True):
             pedestal = self._pedestal_at_rest(name, rest_from_part, wide)
             settled = self.settles([(mesh, Pose.from_matrix(rest_from_part))], self._fixed(pedestal))
             if settled is None:
                 continue
             lying = settled[0].matrix()
-            turned = lying[:3, :3] @ rest_from_part[:3, :3].T
-            tilt = np.degrees(np.arccos(np.clip(turned[2, 2], -1.0, 1.0)))  # how far its up axis turned
-            drop = float((rest_from_part[:3, :3] @ com)[2] + rest_from_part[2, 3] - (lying[:3, :3] @ com)[2]
-                         - lying[2, 3])
-            moved = mesh.vertices @ lying[:3, :3].T + lying[:3, 3]
-            half = 0.5 * np.ptp(moved[:, :2], axis=0)
-            # lying low: untouched, a part standing on a narrow base balances, and tips over at the first nudge
-            low = (lying[:3, :3] @ com)[2] + lying[2, 3] <= SETTLE_MAX_COM_HEIGHT_RATIO * half.min()
-            if tilt > SETTLE_MAX_TILT_DEG or drop > SETTLE_MAX_DROP_M or not low:
+            if not _settled_low(mesh, rest_from_part, lying):
                 continue
-            lying[:2, 3] -= 0.5 * (moved.min(axis=0) + moved.max(axis=0))[:2]  # centred in x-y, as rest poses are
+            lying[:2, 3] -= _footprint_centre(mesh, lying)  # centred in x-y, as rest poses are
             pedestal = self._pedestal_at_rest(name, lying, wide)
             if self.rests is not None and not self.rests([(mesh, Pose.from_matrix(lying))], self._fixed(pedestal)):
                 continue
             self.support_cache[(name, np.round(lying, 9).tobytes())] = pedestal
             return lying
         return None
+
+    def _usable_at_target(self, name: str, grasp: Grasp, grasp_ok_at_target) -> bool:
+        key = (name, _grasp_key(grasp))
+        if key not in self.usable_at_target:
+            self.usable_at_target[key] = bool(grasp_ok_at_target(name, grasp))
+        return self.usable_at_target[key]
+
+    def _clear_of(self, grasps: Sequence[Grasp], rest_from_part: np.ndarray, pedestal: Pedestal) -> list[Grasp]:
+        """The ``grasps`` whose hand clears the pedestal (rest frame) and the table, the part lying on it."""
+        return _pickable(grasps, Pose.from_matrix(rest_from_part), self._fixed(pedestal)[:1],
+                         -self.area.pedestal_height_m)
+
+    def _free_fingers(self, name: str, rest_from_part: np.ndarray, grasps: Sequence[Grasp],
+                      grasp_ok_at_target) -> np.ndarray:
+        """The rest pose to try in place of ``rest_from_part``. Where none of the grasps that clear the part's
+        pedestal in this pose works at the target (a frame of thin bars lying on it: the fingers closing on a bar
+        reach down into the pedestal's top), the pedestal becomes one cut back from one side
+        (:meth:`_cut_pedestals`), so that the bars there overhang: the same pose if the part rests on it as it
+        is (the physics check, else the geometric one), or where it settles on it (as :meth:`_settled` accepts),
+        re-centred with the pedestal; else the pose and pedestal stay."""
+        key = (name, np.round(rest_from_part, 9).tobytes())
+        pedestal = self.support_cache.get(key)
+        if pedestal is None or pedestal.chocks or key in self.fingers_freed:
+            return rest_from_part
+        self.fingers_freed.add(key)
+        if any(self._usable_at_target(name, g, grasp_ok_at_target)
+               for g in self._clear_of(grasps, rest_from_part, pedestal)):
+            return rest_from_part
+        mesh, part = self.meshes[name], Pose.from_matrix(rest_from_part)
+        usable = lambda grasp: self._usable_at_target(name, grasp, grasp_ok_at_target)  # noqa: E731
+        for cut in self._cut_pedestals(name, rest_from_part, pedestal, grasps, usable):
+            if (self.rests([(mesh, part)], self._fixed(cut)) if self.rests is not None else
+                    rests_stably(mesh, rest_from_part, _box_corners(*_top_box(cut)))):
+                self.support_cache[key] = cut
+                return rest_from_part
+            settled = None if self.settles is None else self.settles([(mesh, part)], self._fixed(cut))
+            if settled is None or not _settled_low(mesh, rest_from_part, settled[0].matrix()):
+                continue
+            lying = settled[0].matrix()
+            centre = _footprint_centre(mesh, lying)
+            lying[:2, 3] -= centre
+            cut = dataclasses.replace(cut, world_from_pedestal=Pose([-centre[0], -centre[1], 0.0], [1, 0, 0, 0])
+                                      @ cut.world_from_pedestal)
+            if self.rests is not None and not self.rests([(mesh, Pose.from_matrix(lying))], self._fixed(cut)):
+                continue
+            settled_key = (name, np.round(lying, 9).tobytes())
+            self.support_cache[settled_key] = cut
+            self.fingers_freed.add(settled_key)
+            return lying
+        return rest_from_part
+
+    def _cut_pedestals(self, name: str, rest_from_part: np.ndarray, pedestal: Pedestal, grasps: Sequence[Grasp],
+                       usable: Callable[[Grasp], bool]) -> list[Pedestal]:
+        """``pedestal`` (rest frame) cut back by :data:`FRAME_CUTS_M` from one side: per side the smallest cut that
+        frees some of the ``grasps`` that are ``usable`` (at the target) and leaves the part's centre of mass over
+        the top, the sides freeing the most grasps first."""
+        com = (rest_from_part[:3, :3] @ _centre_of_mass(self.meshes[name]) + rest_from_part[:3, 3])[:2]
+        found = []
+        for side in ((0, 1), (0, -1), (1, 1), (1, -1)):
+            for cut_m in FRAME_CUTS_M:
+                cut = _cut_back(pedestal, side, cut_m)
+                lo, hi = _top_box(cut)
+                if np.any(com < lo + SUPPORT_MARGIN_M) or np.any(com > hi - SUPPORT_MARGIN_M):
+                    break  # cut back past its centre of mass
+                freed = sum(map(usable, self._clear_of(grasps, rest_from_part, cut)))
+                if freed:
+                    found.append((freed, len(found), cut))
+                    break
+        return [cut for _, _, cut in sorted(found, key=lambda f: (-f[0], f[1]))]
 
     def _pedestal_at_rest(self, name: str, rest_from_part: np.ndarray, wide: bool = False) -> Pedestal:
         """The pedestal made for the part in this rest pose (rest frame: its top at z = 0 under the footprint's
@@ -795,11 +860,7 @@ class _Layout:
         when no grasp works here or some earlier slot would keep no option."""
         own = [] if pedestal is None else [(pedestal.mesh(), pedestal.world_from_pedestal)]
         obstacles = own + self.obstacles_at_pick(name, corners)
-        feasible = clear_at_pick(grasps, world_from_part, obstacles, self.area.table_z_m, HAND)
-        slanted = [g for g in feasible if _slanted(world_from_part, g)]
-        spoiled = {_grasp_key(g) for g in slanted} - {_grasp_key(g) for g in clear_at_pick(
-            slanted, world_from_part, obstacles, self.area.table_z_m, TILTED_HAND)}
-        at_pick = {_grasp_key(g) for g in feasible} - spoiled
+        at_pick = {_grasp_key(g) for g in _pickable(grasps, world_from_part, obstacles, self.area.table_z_m)}
         # the support (own pedestal, or the board under it) is left out: the grasp check covered the hand
         present = [o for slot in self.slots if base is None or slot.part != base.part
                    for o in self._bodies(slot, name)]
@@ -816,10 +877,7 @@ class _Layout:
             # (the fingertips keep level above the support), else in the caller's order (best at the target first)
             usable = [g for g in grasps if _grasp_key(g) in at_pick]
             for grasp in sorted(usable, key=lambda g: (not level(g), steepness(g))):
-                key = (name, _grasp_key(grasp))
-                if key not in self.usable_at_target:
-                    self.usable_at_target[key] = bool(grasp_ok_at_target(name, grasp))
-                if self.usable_at_target[key]:
+                if self._usable_at_target(name, grasp, grasp_ok_at_target):
                     reached = self.reach.at_pick(name, grasp, world_from_part, present, support)
                     if reached is not None:
                         yield grasp, reached
@@ -856,6 +914,45 @@ class _Layout:
         if self.rank(slot.part) > self.rank(name):
             out.append((self.meshes[slot.part], slot.world_from_part))
         return out
+
+
+def _settled_low(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, lying: np.ndarray) -> bool:
+    """Whether a part laid down in ``rest_from_part`` that settled in ``lying`` (both rest frames, 4x4) lies as
+    :meth:`_Layout._settled` accepts: turned by at most :data:`SETTLE_MAX_TILT_DEG`, its centre of mass sunk by at
+    most :data:`SETTLE_MAX_DROP_M`, and lying low (:data:`SETTLE_MAX_COM_HEIGHT_RATIO`)."""
+    com = _centre_of_mass(mesh)
+    turned = lying[:3, :3] @ rest_from_part[:3, :3].T
+    tilt = np.degrees(np.arccos(np.clip(turned[2, 2], -1.0, 1.0)))  # how far its up axis turned
+    drop = float((rest_from_part[:3, :3] @ com)[2] + rest_from_part[2, 3] - (lying[:3, :3] @ com)[2] - lying[2, 3])
+    moved = mesh.vertices @ lying[:3, :3].T + lying[:3, 3]
+    half = 0.5 * np.ptp(moved[:, :2], axis=0)
+    # lying low: untouched, a part standing on a narrow base balances, and tips over at the first nudge
+    low = (lying[:3, :3] @ com)[2] + lying[2, 3] <= SETTLE_MAX_COM_HEIGHT_RATIO * half.min()
+    return bool(tilt <= SETTLE_MAX_TILT_DEG and drop <= SETTLE_MAX_DROP_M and low)
+
+
+def _footprint_centre(mesh: trimesh.Trimesh, rest_from_part: np.ndarray) -> np.ndarray:
+    """Centre (x, y) of the posed part's bounding box in the rest frame."""
+    moved = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
+    return 0.5 * (moved.min(axis=0) + moved.max(axis=0))[:2]
+
+
+def _cut_back(pedestal: Pedestal, side: tuple[int, int], cut_m: float) -> Pedestal:
+    """``pedestal`` (no chocks) with its top cut back by ``cut_m`` from its side ``side`` = (axis, sign) (0: x,
+    1: y of its own frame); the opposite edge stays where it is."""
+    axis, sign = side
+    size = list(pedestal.size_m)
+    size[axis] -= cut_m
+    shift = np.zeros(3)
+    shift[axis] = -sign * 0.5 * cut_m
+    return dataclasses.replace(pedestal, size_m=tuple(size), world_from_pedestal=pedestal.world_from_pedestal
+                               @ Pose(shift, [1.0, 0.0, 0.0, 0.0]))
+
+
+def _top_box(pedestal: Pedestal) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) x-y corners of the pedestal's top, in the frame it is posed in (unrotated about z)."""
+    centre, half = pedestal.world_from_pedestal.position[:2], 0.5 * np.array(pedestal.size_m[:2])
+    return centre - half, centre + half
 
 
 def _rest_half(mesh: trimesh.Trimesh, rest_from_part: np.ndarray) -> tuple[np.ndarray, bool]:
@@ -928,6 +1025,16 @@ def clear_at_pick(grasps: Sequence[Grasp], world_from_part: Pose, obstacles, flo
                              obstacles, None, floor_z=floor_z, gripper=gripper)
     kept = {_pose_key(g) for g in arriving} & {_pose_key(g) for g in closed}
     return [g for g in grasps if _pose_key(g) in kept]
+
+
+def _pickable(grasps: Sequence[Grasp], world_from_part: Pose, obstacles, floor_z: float) -> list[Grasp]:
+    """The ``grasps`` clear at the pick (:func:`clear_at_pick`), those whose fingers close on a slant checked with
+    :data:`TILTED_HAND`."""
+    feasible = clear_at_pick(grasps, world_from_part, obstacles, floor_z, HAND)
+    slanted = [g for g in feasible if _slanted(world_from_part, g)]
+    spoiled = {_grasp_key(g) for g in slanted} - {_grasp_key(g) for g in clear_at_pick(
+        slanted, world_from_part, obstacles, floor_z, TILTED_HAND)}
+    return [g for g in feasible if _grasp_key(g) not in spoiled]
 
 
 def _pose_key(grasp: Grasp) -> tuple:

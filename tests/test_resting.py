@@ -199,3 +199,37 @@ def test_a_frame_lying_flat_falls_through_its_usual_pedestal_and_settles_on_a_wi
         assert abs(lowest - pedestal_top) < 0.001  # lying on it (the simulated body is inset 0.25 mm)
         assert check([(frame, slot.world_from_part)], [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal),
                                                        (table, Pose([0, 0, -0.01], [1, 0, 0, 0]))])
+
+
+def test_a_frame_of_thin_bars_lies_on_a_pedestal_cut_back_from_one_side():
+    """A 24 cm square frame of 12 mm bars lying flat settles on the wide pedestal (inset 5 mm), where the fingers
+    closing on any bar reach down into the pedestal's top: no grasp clears it. Kitting cuts the pedestal back
+    from one side, so that the bar there overhangs it, and the frame rests on what is left; the grasp it picks
+    closes on that bar, beyond the pedestal's edge."""
+    from planning.grasp import antipodal_grasps
+    from planning.kitting import HAND, NARROW_INSET_M, KittingArea, clear_at_pick, plan_kitting
+
+    frame = _square_frame(0.24, 0.012, 0.012)
+    flat = upright_rest_pose(frame, np.eye(3))
+    wide = pedestal_for(_rest_half(frame, flat)[0], IDENTITY, PEDESTAL_HEIGHT_M, wide=True)
+    grasps = [g for g in antipodal_grasps(frame, np.random.default_rng(0)) if g.part_from_tcp.rotation[2, 2] < -0.9]
+    assert grasps
+    floor = (trimesh.creation.box((4.0, 4.0, 0.02)), Pose([0, 0, -PEDESTAL_HEIGHT_M - 0.01], [1, 0, 0, 0]))
+    assert not clear_at_pick(grasps, Pose.from_matrix(flat), [(wide.mesh(), wide.world_from_pedestal), floor],
+                             -PEDESTAL_HEIGHT_M, HAND)  # every grasp's fingers meet the wide pedestal
+    area = KittingArea(centre_xy=(0.0, 0.0), inner_radius_m=0.32, outer_radius_m=0.72, table_min_xy=(-0.55, -0.8),
+                       table_max_xy=(0.95, 0.8), table_z_m=0.0, pedestal_height_m=PEDESTAL_HEIGHT_M,
+                       keep_out=(((0.25, -0.25), (0.75, 0.25)),), gap_m=0.06)
+    table = trimesh.creation.box((4.0, 4.0, 0.02))
+    with PhysicsRestCheck() as check:
+        slot = plan_kitting(["frame"], [frame], {"frame": grasps}, lambda name, grasp: True, area, rests=check,
+                            settles=check.settle, target_rotations={"frame": np.eye(3)})[0]
+        assert slot.world_from_part.rotation[2, 2] > 0.999  # flat, as in its assembly
+        full = 0.24 - 2 * NARROW_INSET_M
+        sizes = sorted(slot.pedestal.size_m[:2])
+        assert sizes[1] == pytest.approx(full) and sizes[0] < full - 0.02  # cut back along one axis only
+        assert check([(frame, slot.world_from_part)], [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal),
+                                                       (table, Pose([0, 0, -0.01], [1, 0, 0, 0]))])
+        tcp = (slot.world_from_part @ slot.grasp.part_from_tcp).position
+        pedestal_from_tcp = slot.pedestal.world_from_pedestal.inverse().apply(tcp)
+        assert np.any(np.abs(pedestal_from_tcp[:2]) > 0.5 * np.array(slot.pedestal.size_m[:2]))  # beyond its edge
