@@ -148,7 +148,7 @@ class _KitReach(Reach):
         self.table = {"table": (self._convex_part(table.mesh), table.world_from_obstacle.matrix())}
         self.settings = IKSettings(restarts=4)
         self.shoulder = scene.robot.world_from_base.apply(np.array([[0.0, 0.0, SHOULDER_HEIGHT_M]]))[0]
-        self.at_target_cache: dict[tuple[str, int], tuple | None] = {}
+        self.at_target_cache: dict[tuple, tuple | None] = {}  # (part, id(grasp), kit) -> configurations
         self.too_heavy = 0  # arm configurations refused only because they could not hold the part's weight
         self.heavy_parts: dict[str, int] = {}  # part -> how many of its grasps failed at the target for its weight
 
@@ -174,11 +174,13 @@ class _KitReach(Reach):
                load: HoldingTorques | None = None, held: tuple[bool, ...] = ()):
         """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its (ignore, hand_ignore)
         sets (see :meth:`RobotCollisionChecker.first_invalid`; no collision check when ``checks`` is None) and,
-        where ``held``, holding the ``load``; or None."""
+        where ``held``, holding the ``load``; or None. The first attempt starts from ``seed``, the others from random
+        configurations: the arm is redundant, and another elbow may clear what the first one meets."""
         if not all(self._within_reach(pose) for pose in poses):
             return None
         for attempt in range(3):
-            configurations, previous = [], seed if attempt == 0 else None
+            configurations = []
+            previous = seed if attempt == 0 else self.rng.uniform(self.panda.lower_limits, self.panda.upper_limits)
             try:
                 for k, pose in enumerate(poses):
                     settings = self.settings if k == 0 else IKSettings(restarts=1)
@@ -201,13 +203,14 @@ class _KitReach(Reach):
         flange = world_from_tcp.position - world_from_tcp.rotation[:, 2] * HAND_LENGTH_M
         return float(np.linalg.norm(flange - self.shoulder)) <= PANDA_REACH_M
 
-    def _at_target_world(self, part: str, grasp: Grasp) -> list[Pose]:
-        """Load the jig as it is when ``part`` arrives (the parts before it, the part itself as :data:`SELF`) and
-        open the hand for ``grasp``; returns the TCP poses of the release, the pre-place and the retreat's end."""
+    def _at_target_world(self, part: str, grasp: Grasp, kit: list[tuple[trimesh.Trimesh, Pose]] = ()) -> list[Pose]:
+        """Load the jig as it is when ``part`` arrives (the parts before it, the part itself as :data:`SELF`; and
+        the ``kit`` bodies) and open the hand for ``grasp``; returns the TCP poses of the release, the pre-place
+        and the retreat's end."""
         tcp = self.targets[part] @ grasp.part_from_tcp
         pre = Pose(tcp.position - self.insertion[part] * INSERTION_M, tcp.quat_wxyz)
         retreat = Pose(tcp.position - tcp.rotation[:, 2] * APPROACH_M, tcp.quat_wxyz)
-        world = self._world([], self.order[:self.order.index(part)])
+        world = self._world(list(kit), self.order[:self.order.index(part)])
         world[SELF] = (self._convex_part(self.meshes[part]), self.targets[part].matrix())
         self.checker.set_obstacles(world)
         self.checker.hold(None, opening_m=grasp.opening_m)
@@ -219,16 +222,19 @@ class _KitReach(Reach):
     _AT_TARGET_IGNORES = ((frozenset(), frozenset({SELF})), (frozenset({SELF}), frozenset()),
                           (frozenset(), frozenset()))
 
-    def at_target(self, part: str, grasp: Grasp) -> tuple | None:
-        key = (part, id(grasp))
+    def at_target(self, part: str, grasp: Grasp, kit: list[tuple[trimesh.Trimesh, Pose]] = ()) -> tuple | None:
+        """The arm configurations at ``part``'s release, pre-place and retreat's end with ``grasp``, clear of the
+        parts on the jig then and of the ``kit`` bodies (computed once per part, grasp and kit)."""
+        key = (part, id(grasp), tuple((id(mesh), pose.position.tobytes(), pose.quat_wxyz.tobytes())
+                                      for mesh, pose in kit))
         if key not in self.at_target_cache:
             refused = self.too_heavy
-            poses = self._at_target_world(part, grasp)
+            poses = self._at_target_world(part, grasp, kit)
             # the part is in the hand at the release and the pre-place, not at the retreat's end
             found = self._chain(poses, self.home_q, list(self._AT_TARGET_IGNORES), self._load(part, grasp),
                                 (True, True, False))
             self.at_target_cache[key] = None if found is None else tuple(found)
-            if found is None and self.too_heavy > refused:
+            if found is None and self.too_heavy > refused and not kit:
                 self.heavy_parts[part] = self.heavy_parts.get(part, 0) + 1
         return self.at_target_cache[key]
 
@@ -259,8 +265,12 @@ class _KitReach(Reach):
     def at_pick(self, part, grasp, world_from_part, obstacles, support=()):
         target = self.at_target(part, grasp)
         # at the target too, the arm must clear what lies in the kitting area then (pedestals, later parts, and
-        # what the part lay on)
-        if target is None or not self.still_clear((target, (), grasp.opening_m), list(obstacles) + list(support)):
+        # what the part lay on): where the first configurations found there do not (an arm reaching low into a
+        # cabinet sweeps its wrist over the kit), others that do
+        kit = list(obstacles) + list(support)
+        if target is not None and not self.still_clear((target, (), grasp.opening_m), kit):
+            target = self.at_target(part, grasp, kit)
+        if target is None:
             return None
         tcp = world_from_part @ grasp.part_from_tcp
         pre = Pose(tcp.position - tcp.rotation[:, 2] * APPROACH_M, tcp.quat_wxyz)

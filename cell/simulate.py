@@ -140,7 +140,7 @@ class SimSettings:
     fasten_distance_m: float = 0.002  # a released part this much farther from a neighbour than planned is not fastened
     contact_distance_m: float = 0.0  # contact points at this distance or closer (negative: penetration) count
     contact_breaking_m: float = 0.02  # PyBullet's contact breaking threshold (Bullet's default) ...
-    held_contact_breaking_m: float = 0.005  # ... and while a part is held (see :meth:`_Run._weld`)
+    insertion_contact_breaking_m: float = 0.005  # ... and while a held part is inserted (see :meth:`_Run._insert`)
     joint_limit_margin_rad: float = 1e-3  # a joint this far beyond its position limit breaks it
     velocity_tolerance: float = 0.03  # relative: a joint faster than (1 + this) x its velocity limit breaks it
     record_every_s: float | None = None  # simulated seconds between animation frames; None: no frames
@@ -152,7 +152,7 @@ class SimSettings:
             raise ValueError(f"SimSettings.rate_hz must be at least {MIN_RATE_HZ:.0f} Hz, got {self.rate_hz}")
         for name in ("position_tolerance_m", "rotation_tolerance_deg", "density_kg_m3", "finger_force_n",
                      "finger_speed_m_s", "grasp_contact_m", "fasten_distance_m", "contact_breaking_m",
-                     "held_contact_breaking_m"):
+                     "insertion_contact_breaking_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"SimSettings.{name} must be positive, got {getattr(self, name)}")
         for name in ("settle_s", "grasp_seat_m", "grasp_seat_deg", "grasp_square_deg", "joint_clearance_m"):
@@ -501,6 +501,7 @@ class _Run:
         self.overlap_partners: dict[str, set[str]] = {}  # part -> the parts it overlaps at their targets
         self.overlaps = self._overlaps_at_targets()
         self.fitted: set[str] = set()  # held parts whose overlap partners no longer collide with them
+        self.inserting = False  # the held part's insertion is under way (see :meth:`_insert`)
         self.arm_q = np.zeros(7)
         self.arm_qd = np.zeros(7)
 
@@ -550,6 +551,24 @@ class _Run:
             cell.set_part(name, part.world_from_start)
         return sorted(overlaps, key=lambda o: -o[2])
 
+    def _insert(self) -> None:
+        """The held part's insertion begins (its last motion before the release): it stops colliding with the
+        parts it overlaps at their targets (:meth:`_let_fit`), and the contacts PyBullet creates from now on until
+        the release break once their points drift :attr:`SimSettings.insertion_contact_breaking_m` apart (Bullet's
+        default is 2 cm). A top sliding down between two sides with a quarter of a millimetre to spare first meets
+        each side's top edge from above; with the default, PyBullet keeps that contact and refreshes it along its
+        first, nearly vertical, normal while the top moves down past the edge, so the gap beside it reads as a
+        penetration and the solver jams the top centimetres high (traced on procedural cabinets, whose tops then
+        ended 4-14 mm off). Not smaller: at 1-2 mm the weld drives a held part pushed onto a neighbour most of the
+        way into it (10 of 12 mm where 5 mm stops it 2.7 mm in). Not for the whole carry: parts resting in the
+        kit then tipped off their pedestals now and then (a rail standing on its edge on a procedural chair's
+        pedestal, untouched)."""
+        self.inserting = True
+        if self.held not in self.fitted:
+            self._let_fit(self.held)
+        self.pb.setPhysicsEngineParameter(contactBreakingThreshold=self.settings.insertion_contact_breaking_m,
+                                          physicsClientId=self.cid)
+
     def _let_fit(self, name: str) -> None:
         """From now on, ``name`` does not collide with the parts it overlaps at their targets."""
         for other in self.overlap_partners.get(name, ()):
@@ -588,8 +607,8 @@ class _Run:
 
     def physics_step(self, q_target: np.ndarray, qd_target: np.ndarray, role: _StepRole) -> None:
         pb, cid, robot = self.pb, self.cid, self.cell.robot
-        if self.held is not None and role.place_of == self.held and self.held not in self.fitted:
-            self._let_fit(self.held)
+        if self.held is not None and role.place_of == self.held and not self.inserting:
+            self._insert()
         pb.setJointMotorControlArray(robot, self.cell.panda.arm, pb.POSITION_CONTROL,
                                      targetPositions=q_target.tolist(), targetVelocities=qd_target.tolist(),
                                      forces=ARM_TORQUE_LIMITS_NM, physicsClientId=cid)
@@ -688,16 +707,7 @@ class _Run:
         stops colliding with the part and the fingers stay where they closed. Contacts between the fingers or the
         hand and a welded part fight the weld, which then creeps by degrees over a carry; and PyBullet's Panda
         hulls carry a margin of about 1.1 mm, so the part would catch on the arm where the planner leaves it a
-        fraction of a millimetre (contacts between the robot and the part it holds are not reported either).
-
-        While a part is held, the contacts PyBullet creates from then on break once their points drift
-        :attr:`SimSettings.held_contact_breaking_m` apart (Bullet's default is 2 cm): a top sliding down between
-        two sides with a quarter of a millimetre to spare first meets each side's top edge from above, and with
-        the default that contact is kept and refreshed along its first, nearly vertical, normal while the top moves
-        down past the edge, so the gap beside it reads as a penetration and the solver jams the top centimetres high
-        (traced on procedural cabinets, whose tops then ended 4-14 mm off). Not smaller: at 1-2 mm the weld drives
-        a held part pushed onto a neighbour most of the way into it (10 of 12 mm where 5 mm stops it 2.7 mm in).
-        Contacts between resting parts keep the default, which lets stacks settle."""
+        fraction of a millimetre (contacts between the robot and the part it holds are not reported either)."""
         pb, cid, cell, settings = self.pb, self.cid, self.cell, self.settings
         tcp = pb.getLinkState(cell.robot, cell.panda.tcp_link, computeForwardKinematics=True, physicsClientId=cid)
         world_from_tcp = Pose.from_pybullet(tcp[4], tcp[5])
@@ -725,7 +735,6 @@ class _Run:
                                      physicsClientId=cid)
         self.held = name
         self.grasped.add(name)
-        pb.setPhysicsEngineParameter(contactBreakingThreshold=settings.held_contact_breaking_m, physicsClientId=cid)
 
     def _release(self) -> None:
         """Remove the weld and fasten the released part to its ``fasten_to`` neighbours that lie within
@@ -740,6 +749,7 @@ class _Run:
         pb, cid, cell = self.pb, self.cid, self.cell
         pb.removeConstraint(self.weld, physicsClientId=cid)
         pb.setPhysicsEngineParameter(contactBreakingThreshold=self.settings.contact_breaking_m, physicsClientId=cid)
+        self.inserting = False
         name, self.held, self.weld = self.held, None, None
         self.released_from_hand = name
         body = cell.parts[name]

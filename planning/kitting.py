@@ -85,6 +85,7 @@ SCORED_GRASPS = 20  # the grasps (best at the target first) that rank the rest p
 FROM_ABOVE = np.cos(np.radians(30.0))  # a pick from above: the approach within 30 degrees of straight down
 LEVEL_FINGERS = np.sin(np.radians(10.0))  # at the pick, grasps closing within 10 degrees of level come first
 GRASP_OPTIONS = 4  # grasps (with arm configurations) kept per part, so a later neighbour may spoil some of them
+LAYOUT_RETRIES = 2  # parts that find no place are laid out first in a new try of the layout, at most this many
 
 
 @dataclass(frozen=True)
@@ -528,18 +529,32 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
                            f"included), the kitting ring offers {offered:.2f} m2 within reach on the table: "
                            "the object is too large for this cell (use a scaled-down model of it, or a scene "
                            "with a larger kitting area)", TOO_LARGE)
-    # largest footprints first (they need the roomy places, and boards are stacked on them), ties in order
+    # largest footprints first (they need the roomy places, and boards are stacked on them), ties in order; a part
+    # that finds no place goes first in the next try (the arm at its target may sweep over the places the larger
+    # parts took near the jig; laid out first, it keeps them clear of it), at most LAYOUT_RETRIES times
     area_of = {name: float(np.prod(np.sort(mesh.extents)[1:])) for name, mesh in zip(names, meshes)}
-    by_size = sorted(range(len(names)), key=lambda k: (-round(area_of[names[k]], 4), k))
-    for name, mesh in ((names[k], meshes[k]) for k in by_size):
-        if time.perf_counter() > deadline:
-            raise KittingError(f"part {name!r}: the planning time budget ran out while laying out the kit",
-                               OUT_OF_TIME, name)
-        chosen = layout.place(name, candidates[name], grasp_ok_at_target)
-        if chosen is None:
-            raise KittingError(*_why_not(name, mesh, candidates[name], grasp_ok_at_target, area, layout.prefer,
-                                         name in layout.unrested), name)
-        layout.slots.append(chosen)
+    by_size = [names[k] for k in sorted(range(len(names)), key=lambda k: (-round(area_of[names[k]], 4), k))]
+    mesh_of = dict(zip(names, meshes))
+    first: list[str] = []
+    while True:
+        layout.slots, layout.options = [], {}
+        failed = None
+        for name in first + [n for n in by_size if n not in first]:
+            if time.perf_counter() > deadline:
+                raise KittingError(f"part {name!r}: the planning time budget ran out while laying out the kit",
+                                   OUT_OF_TIME, name)
+            chosen = layout.place(name, candidates[name], grasp_ok_at_target)
+            if chosen is None:
+                failed = name
+                break
+            layout.slots.append(chosen)
+        if failed is None:
+            break
+        message, kind = _why_not(failed, mesh_of[failed], candidates[failed], grasp_ok_at_target, area,
+                                 layout.prefer, failed in layout.unrested)
+        if kind != NO_PLACE or failed in layout.unrested or failed in first or len(first) >= LAYOUT_RETRIES:
+            raise KittingError(message, kind, failed)
+        first.append(failed)
     slots = [dataclasses.replace(slot, grasp=layout.options[slot.part][0][0], reach=layout.options[slot.part][0][1],
                                  alternatives=tuple(layout.options[slot.part][1:]))
              for slot in layout.slots]  # each part's best grasp that the parts laid out after it left open

@@ -256,7 +256,7 @@ def test_a_top_slides_down_between_its_sides(tmp_path):
     quarter of a millimetre to spare on each side), planned and simulated in full: the top lands on its target. It
     used to stop high and tilted (6 degrees here; 4-14 mm on whole cabinets), held up by PyBullet contacts that were
     made against the sides' top edges from above and kept along that first normal as the top moved past them
-    (``SimSettings.held_contact_breaking_m``)."""
+    (``SimSettings.insertion_contact_breaking_m``)."""
     cabinet = generate("cabinet", "3", np.random.default_rng([2000, 0]), "carcass")
     keep = {"plinth_front", "plinth_rear", "plinth_left", "plinth_right", "bottom", "side_left", "side_right", "top"}
     cabinet.parts = [p for p in cabinet.parts if p.name in keep]

@@ -203,3 +203,38 @@ def test_nothing_is_stacked_on_a_board_standing_on_its_edge():
     top = _flat_top(board, lying)
     assert top is not None and abs(top[0] - 0.134) < 1e-9 and np.allclose(sorted(2 * top[3]), [0.3, 0.4])
     assert _flat_top(board, standing) is None
+
+
+class _ArmPlacingOnePartSweepsTheRight(_ArmSweepsTheRight):
+    """A robot whose arm sweeps the ring's right-hand side (y < -0.3) only when it places ``part`` at its target."""
+
+    def __init__(self, part: str):
+        super().__init__()
+        self.part = part
+
+    def at_pick(self, part, grasp, world_from_part, obstacles, support=()):
+        return super().at_pick(part, grasp, world_from_part, obstacles, support) if part == self.part else (part,)
+
+    def still_clear(self, reach, obstacles):
+        return reach != (self.part,) or super().still_clear(reach, obstacles)
+
+
+def test_a_part_whose_arm_sweeps_the_places_larger_parts_took_is_laid_out_first():
+    """Three boards take the places nearest the jig first, one on the right; the arm placing the small block
+    sweeps the right, so no place works for the block. Laid out again with the block first, the boards keep clear
+    of its arm and every part finds a place."""
+    from planning.grasp import antipodal_grasps
+
+    boards = {f"board_{k}": trimesh.creation.box((0.3, 0.2, 0.02)) for k in range(3)}
+    names = ["block"] + list(boards)
+    meshes = [trimesh.creation.box((0.06, 0.04, 0.04))] + list(boards.values())
+    grasps = {n: antipodal_grasps(m, np.random.default_rng(0))[:20] for n, m in zip(names, meshes)}
+    plain = plan_kitting(names, meshes, grasps, lambda name, grasp: True, AREA)
+    assert any(slot.footprint_world[:, 1].min() < -0.3 for slot in plain if slot.part != "block")
+    reach = _ArmPlacingOnePartSweepsTheRight("block")
+    slots = plan_kitting(names, meshes, grasps, lambda name, grasp: True, AREA, reach=reach)
+    assert [s.part for s in slots] == names
+    for slot in slots:
+        assert slot.world_from_part.apply(meshes[names.index(slot.part)].vertices)[:, 1].min() >= -0.3
+        if slot.pedestal is not None:
+            assert slot.pedestal.world_from_pedestal.apply(slot.pedestal.mesh().vertices)[:, 1].min() >= -0.3

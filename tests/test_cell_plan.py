@@ -1,0 +1,43 @@
+"""The robot's side of kitting in the cell planner (cell/plan.py): arm configurations at the pick and at the
+target, with the real Panda model, inverse kinematics and collision checker."""
+
+import numpy as np
+import trimesh
+
+from cell.bullet import BulletClient
+from cell.plan import _KitReach
+from cell.robot import Panda
+from cell.scene import load_scene
+from planning.grasp import Grasp
+from planning.pose import Pose
+
+BOARD = trimesh.creation.box((0.2, 0.02, 0.1))  # standing on its long edge, metres
+DOWN_TCP = [0.0, 1.0, 0.0, 0.0]  # the TCP's approach axis along world -z
+
+
+def test_the_arm_at_a_target_takes_other_configurations_where_the_first_meet_the_kit():
+    """The first arm configurations found at a board's target put the elbow where a kitted part lies: the pick
+    then asks for configurations at the target that clear the kit, and gets them (the arm is redundant: another
+    elbow), instead of ruling the grasp out at every place."""
+    scene = load_scene()
+    top_z = scene.table.top_z
+    target = Pose([0.55, 0.0, top_z + 0.15], [1.0, 0.0, 0.0, 0.0])
+    pick = Pose([0.25, -0.45, top_z + 0.05], [1.0, 0.0, 0.0, 0.0])
+    grasp = Grasp(Pose([0.0, 0.0, 0.038], DOWN_TCP), width_m=0.02, opening_m=0.04, score=1.0, centroid_score=1.0,
+                  contact_score=1.0)
+    with BulletClient() as client:
+        panda = Panda(client, scene.robot.world_from_base)
+        reach = _KitReach(panda, scene, np.random.default_rng(0), np.array(scene.robot.home_q), {"board": target},
+                          {"board": BOARD}, ["board"], {"board": np.array([0.0, 0.0, -1.0])})
+        first = reach.at_target("board", grasp)
+        assert first is not None
+        elbow = reach.checker.link_frames(np.array(first[0])[None])[0, 4, :3, 3]  # joint 4's origin
+        kit = [(trimesh.creation.box((0.05, 0.05, 0.05)), Pose(elbow, [1.0, 0.0, 0.0, 0.0]))]
+        assert not reach.still_clear((first, (), grasp.opening_m), kit)
+        found = reach.at_pick("board", grasp, pick, kit)
+        assert found is not None
+        picked, placed, opening = found
+        assert reach.still_clear((placed, (), opening), kit) and reach.still_clear((picked, (), opening), kit)
+        assert np.linalg.norm(np.array(placed[0]) - np.array(first[0])) > 0.1  # another arm configuration
+        for q, expected in zip(placed[:1], [target @ grasp.part_from_tcp]):
+            assert np.allclose(reach.checker.world_from_tcp(np.array(q))[:3, 3], expected.position, atol=1e-3)
