@@ -49,12 +49,11 @@ def write_pieces_obj(pieces: Sequence[trimesh.Trimesh], path: Path) -> None:
 
 def add_convex_body(pb, client_id: int, folder: Path, mesh: trimesh.Trimesh, world_from_body: Pose,
                     props: MassProperties | None, friction: float, inset_m: float = 0.0,
-                    key: str | None = None, friction_anchor: bool = True) -> int:
+                    key: str | None = None) -> int:
     """A body of ``mesh``'s convex pieces inset by ``inset_m`` at ``world_from_body`` (mesh frame), dynamic with
     ``props`` or static (None); no visual shape. The pieces' OBJ file is written into ``folder`` once per mesh and
     inset (reused by later calls with the same folder); ``key``: the mesh's :func:`planning.convex.mesh_key` when
-    the caller has it (hashing a large mesh takes time); ``friction_anchor``: PyBullet's friction anchors (see
-    below). Returns the body id."""
+    the caller has it (hashing a large mesh takes time). Returns the body id."""
     path = folder / f"{key or mesh_key(mesh)}-{inset_m:.6f}.obj"
     if not path.exists():
         write_pieces_obj([inset(piece, inset_m) for piece in convex_pieces(mesh)], path)
@@ -69,9 +68,7 @@ def add_convex_body(pb, client_id: int, folder: Path, mesh: trimesh.Trimesh, wor
     body = pb.createMultiBody(props.mass_kg if props else 0.0, collision, -1, position, orientation,
                               physicsClientId=client_id, **inertial)
     dynamics = {"localInertiaDiagonal": props.inertia_kg_m2} if props else {}
-    # no collision margin: PyBullet's default pads convex hulls by about 1 mm each, so stacked parts would float;
-    # friction anchors: without them a part resting untouched on its pedestal creeps (a procedural chair's post
-    # 5 mm over 90 s of the program, until it fell off its pedestal)
-    pb.changeDynamics(body, -1, collisionMargin=0.0, lateralFriction=friction, frictionAnchor=int(friction_anchor),
-                      physicsClientId=client_id, **dynamics)
+    # no collision margin: PyBullet's default pads convex hulls by about 1 mm each, so stacked parts would float
+    pb.changeDynamics(body, -1, collisionMargin=0.0, lateralFriction=friction, physicsClientId=client_id,
+                      **dynamics)
     return body

@@ -171,16 +171,18 @@ class _KitReach(Reach):
 
     def _chain(self, poses: list[Pose], seed: np.ndarray | None,
                checks: list[tuple[frozenset[str], frozenset[str]]] | None,
-               load: HoldingTorques | None = None, held: tuple[bool, ...] = ()):
+               load: HoldingTorques | None = None, held: tuple[bool, ...] = (), elsewhere: bool = False):
         """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its (ignore, hand_ignore)
         sets (see :meth:`RobotCollisionChecker.first_invalid`; no collision check when ``checks`` is None) and,
-        where ``held``, holding the ``load``; or None. The first attempt starts from ``seed``, the others from random
-        configurations: the arm is redundant, and another elbow may clear what the first one meets."""
+        where ``held``, holding the ``load``; or None. The first attempt starts from ``seed``; the others from where
+        the last one left the arm, or, ``elsewhere``, from random configurations (the arm is redundant: another
+        elbow may clear what the first one meets)."""
         if not all(self._within_reach(pose) for pose in poses):
             return None
         for attempt in range(3):
             configurations = []
-            previous = seed if attempt == 0 else self.rng.uniform(self.panda.lower_limits, self.panda.upper_limits)
+            previous = (seed if attempt == 0 else self.rng.uniform(self.panda.lower_limits, self.panda.upper_limits)
+                        if elsewhere else None)
             try:
                 for k, pose in enumerate(poses):
                     settings = self.settings if k == 0 else IKSettings(restarts=1)
@@ -232,7 +234,7 @@ class _KitReach(Reach):
             poses = self._at_target_world(part, grasp, kit)
             # the part is in the hand at the release and the pre-place, not at the retreat's end
             found = self._chain(poses, self.home_q, list(self._AT_TARGET_IGNORES), self._load(part, grasp),
-                                (True, True, False))
+                                (True, True, False), elsewhere=bool(kit))
             self.at_target_cache[key] = None if found is None else tuple(found)
             if found is None and self.too_heavy > refused and not kit:
                 self.heavy_parts[part] = self.heavy_parts.get(part, 0) + 1

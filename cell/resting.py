@@ -102,17 +102,15 @@ class PhysicsRestCheck:
         folder = Path(self._folder.name)
         for mesh, world_from_body in fixed:
             add_convex_body(pb, cid, folder, mesh, world_from_body, None, settings.friction,
-                            key=self._mesh_key(mesh), friction_anchor=False)
+                            key=self._mesh_key(mesh))
         bodies, corners = [], []
         for mesh, world_from_part in loose:
             key = self._mesh_key(mesh)
             if key not in self._props:
                 self._props[key] = mass_properties(mesh, settings.density_kg_m3)
             props = self._props[key]
-            # without friction anchors, as the layout's rules were measured: a part balanced on the corners of
-            # its chocks slides off them (a frame of tubes standing between chocks is laid down instead)
             body = add_convex_body(pb, cid, folder, mesh, world_from_part, props, settings.friction,
-                                   inset_m=0.5 * settings.joint_clearance_m, key=key, friction_anchor=False)
+                                   inset_m=0.5 * settings.joint_clearance_m, key=key)
             # the box's corners in the centre-of-mass frame PyBullet reports
             box = trimesh.bounds.corners(mesh.bounds)
             bodies.append(body)

@@ -4,9 +4,8 @@ The cell is rebuilt in a headless (DIRECT) client with gravity (-9.81 m/s^2 alon
 bodies (table, jig pads, pedestals) and every loose part as a dynamic compound of its convex pieces
 (:func:`planning.convex.convex_pieces`, each inset by half of :attr:`SimSettings.joint_clearance_m`: parts planned
 face to face meet with that clearance, as real ones do), its mass and inertia from its volume at
-:attr:`SimSettings.density_kg_m3`, with friction anchors (:func:`cell.bodies.add_convex_body`). The parts first
-settle for :attr:`SimSettings.settle_s` where they lie; one that moves more than
-:attr:`SimSettings.settle_tolerance_m` is reported (the start was not at rest).
+:attr:`SimSettings.density_kg_m3`. The parts first settle for :attr:`SimSettings.settle_s` where they lie; one
+that moves more than :attr:`SimSettings.settle_tolerance_m` is reported (the start was not at rest).
 
 The arm follows the program's samples at ``rate_hz`` (one physics step per sample) under position control with the
 Franka's joint torque limits. A gripper step that narrows the opening closes the fingers (position control,

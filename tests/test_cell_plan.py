@@ -16,7 +16,7 @@ DOWN_TCP = [0.0, 1.0, 0.0, 0.0]  # the TCP's approach axis along world -z
 
 
 def test_the_arm_at_a_target_takes_other_configurations_where_the_first_meet_the_kit():
-    """The first arm configurations found at a board's target put the elbow where a kitted part lies: the pick
+    """The first arm configurations found at a board's target put the forearm where a kitted part lies: the pick
     then asks for configurations at the target that clear the kit, and gets them (the arm is redundant: another
     elbow), instead of ruling the grasp out at every place."""
     scene = load_scene()
@@ -31,8 +31,9 @@ def test_the_arm_at_a_target_takes_other_configurations_where_the_first_meet_the
                           {"board": BOARD}, ["board"], {"board": np.array([0.0, 0.0, -1.0])})
         first = reach.at_target("board", grasp)
         assert first is not None
-        elbow = reach.checker.link_frames(np.array(first[0])[None])[0, 4, :3, 3]  # joint 4's origin
-        kit = [(trimesh.creation.box((0.05, 0.05, 0.05)), Pose(elbow, [1.0, 0.0, 0.0, 0.0]))]
+        frames = reach.checker.link_frames(np.array(first[0])[None])[0]
+        forearm = 0.5 * (frames[4, :3, 3] + frames[5, :3, 3])  # between the elbow (joint 4) and the wrist (joint 5)
+        kit = [(trimesh.creation.box((0.05, 0.05, 0.05)), Pose(forearm, [1.0, 0.0, 0.0, 0.0]))]
         assert not reach.still_clear((first, (), grasp.opening_m), kit)
         found = reach.at_pick("board", grasp, pick, kit)
         assert found is not None
