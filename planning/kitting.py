@@ -705,7 +705,7 @@ class _Layout:
         usable = lambda grasp: self._usable_at_target(name, grasp, grasp_ok_at_target)  # noqa: E731
         for cut in self._cut_pedestals(name, rest_from_part, pedestal, grasps, usable):
             if (self.rests([(mesh, part)], self._fixed(cut)) if self.rests is not None else
-                    rests_stably(mesh, rest_from_part, _box_corners(*_top_box(cut)))):
+                    rests_stably(mesh, rest_from_part, self._top(cut))):
                 self.support_cache[key] = cut
                 return rest_from_part
             settled = None if self.settles is None else self.settles([(mesh, part)], self._fixed(cut))
@@ -858,8 +858,8 @@ class _Layout:
 
     @staticmethod
     def _top(pedestal: Pedestal) -> np.ndarray:
-        """The pedestal's top outline in the rest frame (the pedestal is centred under it)."""
-        return np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * 0.5 * np.array(pedestal.size_m[:2])
+        """The pedestal's top outline (4, 2) in the rest frame (centred under the part, or cut back off centre)."""
+        return _box_corners(*_top_box(pedestal))
 
     def _stack_of(self, slot: KittingSlot) -> set[str]:
         members = {slot.part}
