@@ -141,6 +141,12 @@ class SimSettings:
     contact_distance_m: float = 0.0  # contact points at this distance or closer (negative: penetration) count
     contact_breaking_m: float = 0.02  # PyBullet's contact breaking threshold (Bullet's default) ...
     insertion_contact_breaking_m: float = 0.005  # ... and while a held part is inserted (see :meth:`_Run._insert`)
+    # a part in the kit falls asleep (Bullet's deactivation) once its squared speeds (m/s, rad/s) sum below this for
+    # 2 s, until something touches it; picked, it never sleeps again. None: parts never sleep. PyBullet's solver
+    # lets a part resting on its pedestal untouched creep by millimetres a minute (a standing drawer front 4.7 mm
+    # in 50 s, then grasped that far off its planned grasp, met a neighbour; a chair's back post fell off); asleep
+    # it stays where it settled. A part tipping over passes this speed well within the 2 s and keeps falling.
+    kit_sleep_threshold: float | None = 1e-5
     joint_limit_margin_rad: float = 1e-3  # a joint this far beyond its position limit breaks it
     velocity_tolerance: float = 0.03  # relative: a joint faster than (1 + this) x its velocity limit breaks it
     record_every_s: float | None = None  # simulated seconds between animation frames; None: no frames
@@ -155,6 +161,9 @@ class SimSettings:
                      "insertion_contact_breaking_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"SimSettings.{name} must be positive, got {getattr(self, name)}")
+        if self.kit_sleep_threshold is not None and not self.kit_sleep_threshold > 0:
+            raise ValueError("SimSettings.kit_sleep_threshold must be positive or None, "
+                             f"got {self.kit_sleep_threshold}")
         for name in ("settle_s", "grasp_seat_m", "grasp_seat_deg", "grasp_square_deg", "joint_clearance_m"):
             if getattr(self, name) < 0:
                 raise ValueError(f"SimSettings.{name} must not be negative, got {getattr(self, name)}")
@@ -329,6 +338,10 @@ class _Cell:
                 self.part_from_com[part.name] = props.part_from_com
                 self.parts[part.name] = self._add_body(Path(folder), part.mesh, part.world_from_start, props,
                                                        inset_m=0.5 * settings.joint_clearance_m)
+                if settings.kit_sleep_threshold is not None:  # at rest in the kit: see SimSettings
+                    self.pb.changeDynamics(self.parts[part.name], -1,
+                                           activationState=self.pb.ACTIVATION_STATE_ENABLE_SLEEPING,
+                                           sleepThreshold=settings.kit_sleep_threshold, physicsClientId=self.cid)
         self.names.update({v: k for k, v in self.static.items()})
         self.names.update({v: k for k, v in self.parts.items()})
 
@@ -735,6 +748,8 @@ class _Run:
                                      physicsClientId=cid)
         self.held = name
         self.grasped.add(name)
+        pb.changeDynamics(cell.parts[name], -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING,
+                          physicsClientId=cid)
 
     def _release(self) -> None:
         """Remove the weld and fasten the released part to its ``fasten_to`` neighbours that lie within

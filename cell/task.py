@@ -477,7 +477,8 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         # carry with the part grown by a margin (clear of everything by more than the simulator's contact slop);
         # where the pre-place pose already lies between neighbours, the insertion starts farther back, where the
         # part is clear (a drawer's back between its sides), or else the carry checks the part pulled in
-        world.hold(name, grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
+        carry_margin_m = -CARRY_CLEARANCE_M
+        world.hold(name, grasp, grasp.width_m, margin_m=carry_margin_m)
         valid = world.validity(transit=True)
         if not valid(insertion[0]) and valid(lift[-1]):
             lead_in = _lead_in(world, name, grasp, insertion[0], task.insertion_direction, valid, valid_insert)
@@ -485,15 +486,22 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
                 insertion = np.concatenate([lead_in, insertion[1:]])
                 corner = tuple(k + len(lead_in) - 1 for k in corner)
         if not valid(insertion[0]) or not valid(lift[-1]):
-            world.hold(name, grasp, grasp.width_m, margin_m=0.0)  # as it is, if its ends allow
+            carry_margin_m = 0.0  # as it is, if its ends allow
+            world.hold(name, grasp, grasp.width_m, margin_m=carry_margin_m)
             valid = world.validity()
             if not valid(insertion[0]) or not valid(lift[-1]):
-                world.hold(name, grasp, grasp.width_m)
+                carry_margin_m = HELD_MARGIN_M
+                world.hold(name, grasp, grasp.width_m, margin_m=carry_margin_m)
                 valid = world.validity()
             if not valid(insertion[0]):
                 raise TaskPlanningError("goal_in_collision", name, "move to the target", "the pre-place "
                                         f"configuration collides ({world._collision_words(insertion[0], valid)})")
         carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
+        carry, entry = _slot_entry(world, name, grasp, carry)
+        if len(entry) > 1:  # the carry's end lies among neighbours: entered like the insertion, which it joins
+            insertion = np.concatenate([entry, insertion[1:]])
+            corner = (len(entry) - 1,) + tuple(k + len(entry) - 1 for k in corner)
+        world.hold(name, grasp, grasp.width_m, margin_m=carry_margin_m)
         add_motion(name, "move to the target", carry, valid, name, carrying)
         world.hold(name, grasp, grasp.width_m)
         add_motion(name, "insert", insertion, valid_insert, name, _insertion_limits(world, insertion, carrying),
@@ -568,6 +576,30 @@ def _lead_in(world: CellWorld, part: str, grasp: Grasp, pre_q: np.ndarray, direc
             break
     world.hold(part, grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
     return found
+
+
+def _slot_entry(world: CellWorld, part: str, grasp: Grasp, carry: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The carry path (K, 7) split where the held part, grown by :data:`CARRY_CLEARANCE_M`, was last clear of
+    everything (the transit clearance; checked every :data:`DENSE_CHECK_RAD` along its straight joint segments):
+    (the carry up to that configuration, the rest from it), the rest a single configuration when the carry ends
+    clear, or when no configuration of it is. The rest is the part's way into a slot between neighbours with
+    fractions of a millimetre to spare (a cabinet's side between the door and the back it closes, a drawer's back
+    between its sides, where no straight lead-in starts clear within reach): planned with the part as it is, it
+    goes on slowly, like the insertion it joins, and may touch what the part touches at its target. At the carry's
+    speed the simulated part grazed those neighbours by hundredths of a millimetre. The hold is left grown."""
+    world.hold(part, grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
+    clear = world.validity(transit=True)
+    carry = np.asarray(carry, dtype=np.float64)
+    if clear(carry[-1]):
+        return carry, carry[-1:]
+    for j in range(len(carry) - 2, -1, -1):  # segment carry[j] -> carry[j + 1], from its end back
+        a, b = carry[j], carry[j + 1]
+        steps = max(1, int(np.ceil(float(np.max(np.abs(b - a))) / DENSE_CHECK_RAD)))
+        for k in range(steps - 1, -1, -1):
+            q = a + (b - a) * (k / steps)
+            if clear(q):
+                return np.concatenate([carry[:j + 1], q[None]]), np.concatenate([q[None], carry[j + 1:]])
+    return carry, carry[-1:]
 
 
 def _insertion_limits(world: CellWorld, path: np.ndarray, limits: JointLimits) -> JointLimits:
