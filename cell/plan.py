@@ -269,9 +269,13 @@ class _KitReach(Reach):
         # at the target too, the arm must clear what lies in the kitting area then (pedestals, later parts, and
         # what the part lay on): where the first configurations found there do not (an arm reaching low into a
         # cabinet sweeps its wrist over the kit), others that do
+        # (solved again once per layout so far, the other slots' bodies; again with the part's own support only
+        # where those configurations meet it: keyed on the support, that search ran at every place tried)
         kit = list(obstacles) + list(support)
         if target is not None and not self.still_clear((target, (), grasp.opening_m), kit):
-            target = self.at_target(part, grasp, kit)
+            target = self.at_target(part, grasp, list(obstacles))
+            if target is not None and support and not self.still_clear((target, (), grasp.opening_m), kit):
+                target = self.at_target(part, grasp, kit)
         if target is None:
             return None
         tcp = world_from_part @ grasp.part_from_tcp

@@ -14,10 +14,12 @@ from cell.task import (
     LEAD_IN_STEPS_M,
     PANDA_LIMITS,
     SLIDE_CLEARANCE_M,
+    TRANSIT_CLEARANCE_M,
     CellWorld,
     PartTask,
     _insertion_limits,
     _lead_in,
+    _slot_entry,
 )
 from planning.collision import ConvexPart
 from planning.grasp import Grasp
@@ -117,6 +119,43 @@ def test_an_insertion_starts_farther_back_where_its_pre_place_lies_between_neigh
     rise_m = tcp[0, 2] - tcp[-1, 2]
     assert rise_m == pytest.approx(LEAD_IN_STEPS_M[1], abs=1e-4)  # 4 cm more was not enough, 8 cm was
     assert np.max(np.abs(tcp[:, :2] - tcp[-1, :2])) < 1e-4  # straight down the insertion
+
+
+def test_a_carry_ending_between_neighbours_is_split_where_the_part_was_last_clear(panda):
+    """The plank comes down between its posts from 30 cm above its target. Its posts reach 13 cm above the target,
+    so the last part of the carry, to the pre-place pose 8 cm above, runs with the plank between them: the carry
+    is split where the plank, grown by the carry clearance, was last clear (its bottom just above the posts' tops
+    plus the carry's clearances); the rest goes with the insertion. A carry that ends clear is not split."""
+    plank = trimesh.creation.box((0.008, 0.4, 0.02))
+    post = trimesh.creation.box((0.01, 0.03, 0.3))
+    target = Pose([0.5, 0.0, 0.2], [0.0, 1.0, 0.0, 0.0])
+    posts_top_z = 0.2 + 0.13
+    placed = {f"post {i}": Pose([0.5 + sx * (0.004 + 0.0005 + 0.005), sy * 0.17, posts_top_z - 0.15], [1, 0, 0, 0])
+              for i, (sx, sy) in enumerate(((1, 1), (-1, 1), (1, -1), (-1, -1)))}
+    parts = {"plank": ConvexPart.from_mesh("plank", plank)}
+    parts.update({name: ConvexPart.from_mesh(name, post) for name in placed})
+    world = CellWorld(panda, Pose.identity(), {}, parts, np.random.default_rng(0))
+    world.set_part_poses(placed)
+    grasp = Grasp(Pose.identity(), width_m=0.008, opening_m=0.02, score=1.0, centroid_score=1.0, contact_score=1.0)
+    world.hold("plank", grasp, grasp.width_m)
+    valid = world.validity()
+    start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
+    place_q = world.solve_ik(target, start, valid, "plank", "test")
+    down = world.straight_line(place_q, target, -DOWN * 0.30, valid, "plank", "test")[::-1]  # 30 cm up to 0 cm
+    carry = down[:-4]  # the carry: from 30 cm above the target to the pre-place pose, 8 cm above (2 cm steps)
+    assert world.panda.forward_tcp(carry[-1]).position[2] == pytest.approx(0.2 + INSERTION_M, abs=1e-4)
+    head, entry = _slot_entry(world, "plank", grasp, carry)
+    np.testing.assert_allclose(head[-1], entry[0])
+    np.testing.assert_allclose(entry[-1], carry[-1])
+    clear = world.validity(transit=True)  # _slot_entry leaves the plank grown
+    assert clear(entry[0]) and not clear(entry[1])
+    plank_bottom_z = world.panda.forward_tcp(entry[0]).position[2] - 0.01
+    clearance_m = CARRY_CLEARANCE_M + TRANSIT_CLEARANCE_M  # the plank grown, the posts grown for a carry
+    assert posts_top_z + clearance_m <= plank_bottom_z < posts_top_z + clearance_m + 0.002
+    assert len(head) + len(entry) == len(carry) + 2  # the split configuration ends one and starts the other
+    high = carry[:6]  # from 30 down to 20 cm above: clear all the way
+    head, entry = _slot_entry(world, "plank", grasp, high)
+    assert len(entry) == 1 and len(head) == len(high)
 
 
 def test_a_held_part_too_heavy_for_the_wrist_makes_a_configuration_invalid(panda):
