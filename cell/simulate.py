@@ -142,7 +142,8 @@ class SimSettings:
     contact_breaking_m: float = 0.02  # PyBullet's contact breaking threshold (Bullet's default) ...
     insertion_contact_breaking_m: float = 0.005  # ... and while a held part is inserted (see :meth:`_Run._insert`)
     # a part in the kit falls asleep (Bullet's deactivation) once its squared speeds (m/s, rad/s) sum below this for
-    # 2 s, until something touches it; picked, it never sleeps again. None: parts never sleep. PyBullet's solver
+    # 2 s, until something touches it; from the approach to its pick on it never sleeps (see :meth:`_Run._wake`).
+    # None: parts never sleep. PyBullet's solver
     # lets a part resting on its pedestal untouched creep by millimetres a minute (a standing drawer front 4.7 mm
     # in 50 s, then grasped that far off its planned grasp, met a neighbour; a chair's back post fell off); asleep
     # it stays where it settled. A part tipping over passes this speed well within the 2 s and keeps falling.
@@ -499,6 +500,7 @@ class _Run:
         self.held: str | None = None
         self.weld: int | None = None
         self.grasped: set[str] = set()
+        self.awake: set[str] = set()  # parts that may no longer sleep (see SimSettings.kit_sleep_threshold)
         self.planned_grasps = dict(planned_grasps or {})  # id(closing step) -> tcp_from_part the plan grasps at
         self.grasp_offsets: dict[str, tuple[float, float, bool]] = {}  # part -> (metres, degrees, seated)
         self.released_from_hand: str | None = None  # released; the robot ignores it until the hand has opened
@@ -622,6 +624,8 @@ class _Run:
         pb, cid, robot = self.pb, self.cid, self.cell.robot
         if self.held is not None and role.place_of == self.held and not self.inserting:
             self._insert()
+        for name in role.robot_may_touch - self.awake:  # the part to be picked (or just released)
+            self._wake(name)
         pb.setJointMotorControlArray(robot, self.cell.panda.arm, pb.POSITION_CONTROL,
                                      targetPositions=q_target.tolist(), targetVelocities=qd_target.tolist(),
                                      forces=ARM_TORQUE_LIMITS_NM, physicsClientId=cid)
@@ -642,6 +646,16 @@ class _Run:
         fingers = self.pb.getJointStates(cell.robot, cell.panda.fingers, physicsClientId=self.cid)
         return CellSnapshot({name: cell.world_from_part(name) for name in cell.parts},
                             tuple(float(v) for v in self.arm_q), (float(fingers[0][0]), float(fingers[1][0])))
+
+    def _wake(self, name: str) -> None:
+        """``name`` wakes and never sleeps again: from the approach to its pick on. Asleep, a part meets the fingers
+        coming down on it as an immovable body for a step, and the contact whips the wrist (joint 6 beyond its
+        velocity limit as the fingers slid down a procedural cabinet's top lying in the kit)."""
+        self.awake.add(name)
+        if name in self.cell.parts:
+            self.pb.changeDynamics(self.cell.parts[name], -1,
+                                   activationState=self.pb.ACTIVATION_STATE_DISABLE_SLEEPING
+                                   | self.pb.ACTIVATION_STATE_WAKE_UP, physicsClientId=self.cid)
 
     def _check_limits(self, role: _StepRole) -> None:
         panda, s = self.cell.panda, self.settings
@@ -748,8 +762,7 @@ class _Run:
                                      physicsClientId=cid)
         self.held = name
         self.grasped.add(name)
-        pb.changeDynamics(cell.parts[name], -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING,
-                          physicsClientId=cid)
+        self._wake(name)
 
     def _release(self) -> None:
         """Remove the weld and fasten the released part to its ``fasten_to`` neighbours that lie within

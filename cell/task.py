@@ -392,6 +392,29 @@ class _ClearExceptNearEnds:
         return None
 
 
+class _AllValid:
+    """``q -> bool``: valid for every one of ``checks`` (each a :class:`_Validity` or alike, with ``first_invalid``)."""
+
+    def __init__(self, *checks) -> None:
+        self.checks = checks
+
+    def __call__(self, q) -> bool:
+        return all(check(q) for check in self.checks)
+
+    def first_invalid(self, qs) -> int | None:
+        found = [k for k in (check.first_invalid(qs) for check in self.checks) if k is not None]
+        return min(found) if found else None
+
+
+def _among_neighbours_validity(world: CellWorld, task: PartTask, exact, ends: tuple[np.ndarray, ...]):
+    """Validity for a carry whose ends lie closer to the part's neighbours than the carry clearance: ``exact``
+    (the part held as it is) everywhere, and the transit clearance from everything but the parts ``task``'s part
+    touches at its target, except within :data:`NEAR_END_RAD` of the ``ends`` (see :class:`_ClearExceptNearEnds`;
+    the hold must stay as it is while it is used)."""
+    clear = world.validity(transit=True, ignore=frozenset(task.touches_at_target))
+    return _ClearExceptNearEnds(_AllValid(clear, exact), exact, ends)
+
+
 def _free_space_validity(world: CellWorld, start_q: np.ndarray, goal_q: np.ndarray):
     """Validity for a move of the empty hand from ``start_q`` to ``goal_q``: with the transit clearance, relaxed
     near an end that lies closer than that to something (see :class:`_ClearExceptNearEnds`)."""
@@ -476,7 +499,10 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
                                        world.clearance_shift(name, task), valid_insert, name)
         # carry with the part grown by a margin (clear of everything by more than the simulator's contact slop);
         # where the pre-place pose already lies between neighbours, the insertion starts farther back, where the
-        # part is clear (a drawer's back between its sides), or else the carry checks the part pulled in
+        # part is clear (a drawer's back between its sides), or else the carry checks the part as it is (or pulled
+        # in) and keeps the transit clearance from everything but the neighbours it touches at its target, except
+        # near its ends: planned with no clearance at all, a drawer front carried past the kit pushed the
+        # cabinet's top lying there 4-5 mm off its pedestal (the simulator's contacts act before bodies touch)
         carry_margin_m = -CARRY_CLEARANCE_M
         world.hold(name, grasp, grasp.width_m, margin_m=carry_margin_m)
         valid = world.validity(transit=True)
@@ -496,7 +522,15 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
             if not valid(insertion[0]):
                 raise TaskPlanningError("goal_in_collision", name, "move to the target", "the pre-place "
                                         f"configuration collides ({world._collision_words(insertion[0], valid)})")
-        carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
+            exact = valid
+            valid = _among_neighbours_validity(world, task, exact, (lift[-1], insertion[0]))
+            try:
+                carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
+            except TaskPlanningError:
+                valid = exact
+                carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
+        else:
+            carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
         carry, entry = _slot_entry(world, name, grasp, carry)
         if len(entry) > 1:  # the carry's end lies among neighbours: entered like the insertion, which it joins
             insertion = np.concatenate([entry, insertion[1:]])

@@ -17,6 +17,7 @@ from cell.task import (
     TRANSIT_CLEARANCE_M,
     CellWorld,
     PartTask,
+    _among_neighbours_validity,
     _insertion_limits,
     _lead_in,
     _slot_entry,
@@ -156,6 +157,42 @@ def test_a_carry_ending_between_neighbours_is_split_where_the_part_was_last_clea
     high = carry[:6]  # from 30 down to 20 cm above: clear all the way
     head, entry = _slot_entry(world, "plank", grasp, high)
     assert len(entry) == 1 and len(head) == len(high)
+
+
+def test_a_carry_among_neighbours_keeps_clear_of_everything_else(panda):
+    """The plank's carry ends between its posts, so it is checked with the plank as it is; still it keeps the
+    transit clearance from a block that is not its neighbour (a part lying in the kit: the simulator's contacts
+    push what passes within a millimetre or two), except near the carry's ends, and may come as close as it fits
+    to the posts it touches at its target."""
+    plank = trimesh.creation.box((0.008, 0.4, 0.02))
+    post = trimesh.creation.box((0.01, 0.03, 0.3))
+    block = trimesh.creation.box((0.05, 0.05, 0.05))
+    target = Pose([0.5, 0.0, 0.2], [0.0, 1.0, 0.0, 0.0])
+    placed = {f"post {i}": Pose([0.5 + sx * (0.004 + 0.0005 + 0.005), sy * 0.17, 0.18], [1, 0, 0, 0])
+              for i, (sx, sy) in enumerate(((1, 1), (-1, 1), (1, -1), (-1, -1)))}
+    # the block's side 1 mm from the plank's -x face where the plank is 30 cm above its target
+    placed["block"] = Pose([0.5 - 0.004 - 0.001 - 0.025, 0.17, 0.5], [1, 0, 0, 0])  # by its end, clear of the hand
+    meshes = {"plank": plank, "block": block, **{n: post for n in placed if n.startswith("post")}}
+    world = CellWorld(panda, Pose.identity(), {}, {n: ConvexPart.from_mesh(n, m) for n, m in meshes.items()},
+                      np.random.default_rng(0))
+    world.set_part_poses(placed)
+    grasp = Grasp(Pose.identity(), width_m=0.008, opening_m=0.02, score=1.0, centroid_score=1.0, contact_score=1.0)
+    task = PartTask("plank", Pose([0.3, 0.3, 0.1], [1, 0, 0, 0]), target, grasp, DOWN,
+                    tuple(n for n in placed if n.startswith("post")), "pedestal")
+    world.hold("plank", grasp, grasp.width_m, margin_m=0.0)
+    exact = world.validity()
+    start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
+    pre = world.solve_ik(Pose([0.5, 0.0, 0.2 + INSERTION_M], target.quat_wxyz), start, exact, "plank", "test")
+    by_block = world.solve_ik(Pose([0.5, 0.0, 0.5], target.quat_wxyz), pre, exact, "plank", "test")
+    assert exact(pre) and exact(by_block)
+    assert not world.validity(transit=True)(pre)  # the posts: within the clearance at the pre-place pose
+    far_end = np.array([0.8, -0.5, 0.3, -1.8, 0.2, 1.6, 0.5])
+    valid = _among_neighbours_validity(world, task, exact, (far_end, pre))
+    assert valid(pre)  # between the posts
+    assert not valid(by_block)  # 1 mm from the block, far from both ends
+    assert valid.first_invalid(np.stack([pre, by_block])) == 1
+    near = _among_neighbours_validity(world, task, exact, (by_block, pre))
+    assert near(by_block)  # ... unless it is an end of the carry
 
 
 def test_a_held_part_too_heavy_for_the_wrist_makes_a_configuration_invalid(panda):
