@@ -23,12 +23,16 @@ from dataclasses import dataclass, field
 import networkx as nx
 import numpy as np
 
-from planning.collision import ConvexPart, box_gap
+from planning.collision import ConvexPart, box_gap, signed_distance
 from planning.contact import FLOOR, all_grounded, contact_graph, support_graph
 from planning.pose import Pose
-from planning.sweep import blocks, leaves_above_floor, travel_to_clear_m
+from planning.sweep import PENETRATION_TOLERANCE_M, blocks, leaves_above_floor, travel_to_clear_m
 
 MAX_DIRECTIONS_PER_GRASP = 4  # free insertion directions tried for a grasp before giving up on a part
+# a direction along which a part stays inside a neighbour it overlaps at its target (a back panel drawn into the
+# groove of a side) for longer than this comes after the others: a robot's straight insertion (8 cm) must start
+# where the part is clear of it, and a 60 cm side slid down the whole groove cannot
+OVERLAP_EXIT_M = 0.06
 
 # a grasp check: (part name, names of the parts present around it, insertion direction) -> a grasp or None
 GraspCheck = Callable[[str, frozenset, np.ndarray], object | None]
@@ -98,6 +102,7 @@ class _Planner:
         bounds = {n: self.parts[n].bounds(self.poses[n]) for n in self.names}
         self.gap = {a: {b: float(box_gap(bounds[a], bounds[b])) for b in self.names} for a in self.names}
         self._blocked: dict[tuple[str, int, str], bool] = {}
+        self._overlap_partners: dict[str, tuple[str, ...]] = {}
         self._floor_ok: dict[tuple[str, int], bool] = {}
         self._grasps: dict[tuple, object | None] = {}
         self.failed: set[frozenset] = set()
@@ -128,11 +133,30 @@ class _Planner:
                                                      self.floor_z_m)
         return self._floor_ok[key]
 
+    def overlap_partners(self, name: str) -> tuple[str, ...]:
+        """The parts ``name`` overlaps at the targets by more than the sweep's penetration tolerance."""
+        if name not in self._overlap_partners:
+            self._overlap_partners[name] = tuple(
+                other for other in self.names
+                if other != name and self.gap[name][other] <= 0.0
+                and signed_distance(self.parts[name], self.poses[name], self.parts[other], self.poses[other],
+                                    cutoff_m=0.0).distance_m < -PENETRATION_TOLERANCE_M)
+        return self._overlap_partners[name]
+
+    def overlap_exit_m(self, name: str, k: int, present: frozenset) -> float:
+        """How far ``name`` moves along its removal direction ``k`` until it lies beyond every part of ``present``
+        it overlaps at the targets (0 when it overlaps none)."""
+        direction = self.directions[name][k]
+        return max([travel_to_clear_m(self.world_vertices[name], self.world_vertices[other], direction)
+                    for other in self.overlap_partners(name) if other in present] + [0.0])
+
     def free_directions(self, name: str, present: frozenset,
                         limit: int) -> tuple[list[int], dict[int, list[str]]]:
-        """Up to ``limit`` removal directions free of the parts in ``present`` (in order of preference), and for
-        each direction tried and found blocked, the first blocker found (nearest parts are tried first)."""
+        """Up to ``limit`` removal directions free of the parts in ``present`` (in order of preference, those
+        that stay inside a part it overlaps for more than :data:`OVERLAP_EXIT_M` last), and for each direction
+        tried and found blocked, the first blocker found (nearest parts are tried first)."""
         free: list[int] = []
+        long_exit: list[int] = []
         blockers: dict[int, list[str]] = {}
         obstacles = sorted(present - {name}, key=lambda o: (self.gap[name][o], o))
         for k in range(len(self.directions[name])):
@@ -143,10 +167,13 @@ class _Planner:
             if hit is not None:
                 blockers[k] = [hit]
                 continue
+            if self.overlap_exit_m(name, k, present) > OVERLAP_EXIT_M:
+                long_exit.append(k)
+                continue
             free.append(k)
             if len(free) >= limit:
                 break
-        return free, blockers
+        return (free + long_exit)[:limit], blockers
 
     def grasp(self, name: str, present: frozenset, direction: np.ndarray) -> object | None:
         if self.grasp_check is None:

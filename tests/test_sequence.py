@@ -197,6 +197,25 @@ def test_two_box_stack_bottom_first():
     assert result.steps[0].fastened_to == (FLOOR,)
 
 
+def test_a_back_panel_drawn_into_its_side_goes_in_from_the_side():
+    """A 40 cm tall back panel whose end is drawn 5 mm into the cabinet's side over its whole height (as models of
+    real furniture draw a panel into its groove; they overlap by 7 mm across). Lowered from above, the back would
+    be inside the side for 40 cm, beyond any straight insertion a robot starts clear of it; moving in along +x it
+    meets the side only over the last 7 mm. Without the overlap it goes in from above, as usual."""
+    def cabinet(overlap_m):
+        return Assembly("groove", [
+            box_part("bottom", (0.3, 0.2, 0.02), [0, 0, 0.01]),
+            box_part("back", (0.314, 0.01, 0.4), [0, -0.105, 0.2]),  # x to +-0.157, front face at y = -0.1
+            box_part("side", (0.014, 0.2 + overlap_m, 0.4), [0.157, -overlap_m / 2, 0.2]),  # x from 0.15
+        ])
+
+    for overlap_m, direction in ((0.005, [1, 0, 0]), (0.0, [0, 0, -1])):
+        result = plan_sequence(*convex_parts(cabinet(overlap_m)), time_budget_s=5.0)
+        assert result.success, result.reason
+        assert result.order == ["bottom", "side", "back"]
+        np.testing.assert_allclose(result.steps[2].insertion_direction, direction, atol=1e-9)
+
+
 def test_peg_in_closed_frame_only_goes_in_from_above():
     assembly = peg_in_frame()
     parts, poses = convex_parts(assembly)
