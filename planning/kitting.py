@@ -44,8 +44,13 @@ from planning.pose import Pose
 HAND_CLEARANCE_M = 0.002  # grasps keep this from pedestals and neighbours (real hands are larger) ...
 TILTED_CLEARANCE_M = 0.004  # ... and this where the fingers close on a slant, sliding down a round part towards
 # its support (2 mm was measured too little in simulation)
+# ... and this from the other slots' parts and pedestals: the arm's approach keeps the task planner's transit
+# clearance (3 mm) from them where it can, and the simulator's Panda hulls are about 1.1 mm larger than the model
+# (with 2 mm, a hand coming down beside a cabinet's top lying in the kit grazed it)
+NEIGHBOUR_CLEARANCE_M = 0.0035
 HAND = clearance_gripper(HAND_CLEARANCE_M)
 TILTED_HAND = clearance_gripper(TILTED_CLEARANCE_M)
+NEIGHBOUR_HAND = clearance_gripper(NEIGHBOUR_CLEARANCE_M)
 NEIGHBOUR_REACH_M = 0.25  # parts whose footprints are farther apart than this cannot touch each other's hand
 MAX_PLACES_PER_POSE = 40  # places tried (with grasp checks) for one stable pose before the next pose
 RADIAL_STEP_M = 0.03
@@ -874,8 +879,8 @@ class _Layout:
         """The slot for ``name`` here, its grasp options and the earlier slots' options that survive it; None
         when no grasp works here or some earlier slot would keep no option."""
         own = [] if pedestal is None else [(pedestal.mesh(), pedestal.world_from_pedestal)]
-        obstacles = own + self.obstacles_at_pick(name, corners)
-        at_pick = {_grasp_key(g) for g in _pickable(grasps, world_from_part, obstacles, self.area.table_z_m)}
+        at_pick = {_grasp_key(g) for g in _pickable(grasps, world_from_part, own, self.area.table_z_m,
+                                                     self.obstacles_at_pick(name, corners))}
         # the support (own pedestal, or the board under it) is left out: the grasp check covered the hand
         present = [o for slot in self.slots if base is None or slot.part != base.part
                    for o in self._bodies(slot, name)]
@@ -909,11 +914,10 @@ class _Layout:
             added = (new_part if self.rank(slot.part) < self.rank(name) else []) + own
             if not added:
                 continue
-            support = [] if slot.pedestal is None else [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal)]
             near = self._near(slot, corners)
             kept = [(grasp, reached) for grasp, reached in self.options[slot.part]
-                    if (not near or clear_at_pick([grasp], slot.world_from_part, added + support,
-                                                  self.area.table_z_m, _hand_for(slot.world_from_part, grasp)))
+                    if (not near or clear_at_pick([grasp], slot.world_from_part, added, None,
+                                                  _neighbour_hand_for(slot.world_from_part, grasp)))
                     and self.reach.still_clear(reached, added)]  # the arm reaches far beyond the hand
             if not kept:
                 return None
@@ -1022,12 +1026,6 @@ def _picks_from_above(grasps: Sequence[Grasp], rest_from_part: np.ndarray) -> in
                and _finger_tilt(rotation, grasp) <= LEVEL_FINGERS for grasp in grasps)
 
 
-def _hand_for(world_from_part: Pose, grasp: Grasp):
-    """The hand model a grasp at the pick is checked with: :data:`TILTED_HAND` where its fingers close on a slant,
-    else :data:`HAND` (one rule for a part's own check and for a later neighbour's)."""
-    return TILTED_HAND if _slanted(world_from_part, grasp) else HAND
-
-
 def clear_at_pick(grasps: Sequence[Grasp], world_from_part: Pose, obstacles, floor_z: float,
                   gripper) -> list[Grasp]:
     """The ``grasps`` (in their order) whose hand is clear of ``obstacles`` both opened to ``opening_m``, as it
@@ -1042,13 +1040,23 @@ def clear_at_pick(grasps: Sequence[Grasp], world_from_part: Pose, obstacles, flo
     return [g for g in grasps if _pose_key(g) in kept]
 
 
-def _pickable(grasps: Sequence[Grasp], world_from_part: Pose, obstacles, floor_z: float) -> list[Grasp]:
-    """The ``grasps`` clear at the pick (:func:`clear_at_pick`), those whose fingers close on a slant checked with
-    :data:`TILTED_HAND`."""
-    feasible = clear_at_pick(grasps, world_from_part, obstacles, floor_z, HAND)
+def _neighbour_hand_for(world_from_part: Pose, grasp: Grasp):
+    """The hand model a grasp at the pick is checked with against other slots' bodies: :data:`TILTED_HAND` where
+    its fingers close on a slant, else :data:`NEIGHBOUR_HAND`."""
+    return TILTED_HAND if _slanted(world_from_part, grasp) else NEIGHBOUR_HAND
+
+
+def _pickable(grasps: Sequence[Grasp], world_from_part: Pose, support, floor_z: float,
+              neighbours=()) -> list[Grasp]:
+    """The ``grasps`` clear at the pick (:func:`clear_at_pick`) of the ``support`` (the part's pedestal or the
+    board it lies on) and the floor with :data:`HAND`, and of the ``neighbours`` (other slots' bodies) with
+    :data:`NEIGHBOUR_HAND`; those whose fingers close on a slant checked with :data:`TILTED_HAND` against both."""
+    feasible = clear_at_pick(grasps, world_from_part, support, floor_z, HAND)
+    if neighbours and feasible:
+        feasible = clear_at_pick(feasible, world_from_part, list(neighbours), None, NEIGHBOUR_HAND)
     slanted = [g for g in feasible if _slanted(world_from_part, g)]
     spoiled = {_grasp_key(g) for g in slanted} - {_grasp_key(g) for g in clear_at_pick(
-        slanted, world_from_part, obstacles, floor_z, TILTED_HAND)}
+        slanted, world_from_part, list(support) + list(neighbours), floor_z, TILTED_HAND)}
     return [g for g in feasible if _grasp_key(g) not in spoiled]
 
 

@@ -8,10 +8,13 @@ from planning.assembly import read_assembly
 from planning.grasp import Grasp, feasible_grasps
 from planning.kitting import (
     HAND,
+    HAND_CLEARANCE_M,
+    NEIGHBOUR_CLEARANCE_M,
     NO_GRASP_AT_TARGET,
     TOO_LARGE,
     KittingArea,
     KittingError,
+    _pickable,
     _polygons_overlap,
     clear_at_pick,
     plan_kitting,
@@ -157,6 +160,33 @@ def test_closing_fingertips_are_checked_against_the_pedestal():
     open_only = feasible_grasps([grasp], world_from_bar, pedestal(0.02), None, floor_z=0.0, gripper=HAND)
     assert len(open_only) == 1  # the opened hand alone does not show it
     assert len(clear_at_pick([grasp], world_from_bar, pedestal(0.008), 0.0, HAND)) == 1
+
+
+def test_a_grasp_keeps_more_clearance_from_other_slots_than_from_its_own_pedestal():
+    """A block as tall as a bar's underside beside the fingers of the bar's top-down grasp, its face ``offset``
+    from the TCP across the fingers: as the bar's own support the hand must clear it by HAND_CLEARANCE_M, as
+    another slot's body by NEIGHBOUR_CLEARANCE_M (the arm's approach keeps the transit clearance from those, and
+    the simulator's hand is larger than the model), so it may stand that much closer as a support."""
+    world_from_bar = Pose(np.array([0.5, 0.0, 0.13]), np.array([1.0, 0.0, 0.0, 0.0]))  # a bar lying on z = 0.12
+    down = Pose.from_rotation(np.array([[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]]), np.zeros(3))
+    grasp = Grasp(down, width_m=0.02, opening_m=0.03, score=1.0, centroid_score=1.0, contact_score=1.0)
+
+    def block(offset):
+        return [(trimesh.creation.box(extents=(0.04, 0.04, 0.135)),
+                 Pose(np.array([0.5 + offset + 0.02, 0.0, 0.0675]), np.array([1.0, 0.0, 0.0, 0.0])))]
+
+    def closest(pickable):  # the smallest offset (to 0.1 mm) at which the grasp is pickable
+        low, high = 0.0, 0.05
+        while high - low > 1e-4:
+            middle = 0.5 * (low + high)
+            low, high = (low, middle) if pickable(middle) else (middle, high)
+        return high
+
+    as_support = closest(lambda offset: bool(_pickable([grasp], world_from_bar, block(offset), 0.0)))
+    as_neighbour = closest(lambda offset: bool(_pickable([grasp], world_from_bar, [], 0.0, block(offset))))
+    assert 0.005 < as_support < 0.03  # the fingers' half depth and the clearance
+    # the hand models are grown about each piece's centre, by about the clearance
+    assert as_neighbour - as_support == pytest.approx(NEIGHBOUR_CLEARANCE_M - HAND_CLEARANCE_M, abs=4e-4)
 
 
 class _ArmSweepsTheRight:
