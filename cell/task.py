@@ -176,8 +176,10 @@ class CellWorld:
     # --- kinematics -------------------------------------------------------------------------------------------
     def solve_ik(self, world_from_tcp: Pose, seed_q: np.ndarray, valid, part: str, stage: str,
                  hint_q: np.ndarray | None = None) -> np.ndarray:
-        """A collision-free IK solution: ``hint_q`` if it is one, else the one nearest ``seed_q`` first."""
-        if hint_q is not None and valid(hint_q):
+        """A collision-free IK solution at least :data:`JOINT_LIMIT_MARGIN_RAD` inside the joint limits: ``hint_q``
+        if it is one, else the one nearest ``seed_q`` first (a release from kitting's hint 6 mrad inside joint 7's
+        limit went past it in the simulator as the arm lowered a cabinet's 3 kg top)."""
+        if hint_q is not None and self.panda.within_limits(hint_q, JOINT_LIMIT_MARGIN_RAD) and valid(hint_q):
             reached, angle = self.panda.forward_tcp(hint_q).distance(world_from_tcp)
             if reached <= self.ik_settings.position_tolerance_m and angle <= self.ik_settings.angle_tolerance_rad:
                 return np.asarray(hint_q, dtype=np.float64)

@@ -11,6 +11,7 @@ from cell.task import (
     CARRY_CLEARANCE_M,
     INSERTION_M,
     INSERTION_SPEED_M_S,
+    JOINT_LIMIT_MARGIN_RAD,
     LEAD_IN_STEPS_M,
     PANDA_LIMITS,
     SLIDE_CLEARANCE_M,
@@ -193,6 +194,19 @@ def test_a_carry_among_neighbours_keeps_clear_of_everything_else(panda):
     assert valid.first_invalid(np.stack([pre, by_block])) == 1
     near = _among_neighbours_validity(world, task, exact, (by_block, pre))
     assert near(by_block)  # ... unless it is an end of the carry
+
+
+def test_an_ik_hint_too_close_to_a_joint_limit_is_solved_again(panda):
+    world = world_with(panda, {})
+    start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
+    for inside_rad, kept in ((0.5 * JOINT_LIMIT_MARGIN_RAD, False), (2 * JOINT_LIMIT_MARGIN_RAD, True)):
+        hint = start.copy()
+        hint[6] = panda.lower_limits[6] + inside_rad
+        q = world.solve_ik(panda.forward_tcp(hint), start, lambda q: True, "bar", "test", hint_q=hint)
+        assert np.array_equal(q, hint) == kept
+        assert panda.within_limits(q, JOINT_LIMIT_MARGIN_RAD)
+        reached, angle = panda.forward_tcp(q).distance(panda.forward_tcp(hint))
+        assert reached < 1e-3 and angle < 1e-2
 
 
 def test_a_held_part_too_heavy_for_the_wrist_makes_a_configuration_invalid(panda):
