@@ -509,10 +509,12 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         world.hold(name, grasp, grasp.width_m, margin_m=carry_margin_m)
         valid = world.validity(transit=True)
         if not valid(insertion[0]) and valid(lift[-1]):
-            lead_in = _lead_in(world, name, grasp, insertion[0], task.insertion_direction, valid, valid_insert)
-            if lead_in is not None:
+            found = _lead_in(world, name, grasp, insertion[0], task.insertion_direction, valid, valid_insert)
+            if found is not None:
+                lead_in, sideways = found
                 insertion = np.concatenate([lead_in, insertion[1:]])
-                corner = tuple(k + len(lead_in) - 1 for k in corner)
+                corner = (((len(lead_in) - 1,) if sideways else ())  # it turns into the insertion there
+                          + tuple(k + len(lead_in) - 1 for k in corner))
         if not valid(insertion[0]) or not valid(lift[-1]):
             carry_margin_m = 0.0  # as it is, if its ends allow
             world.hold(name, grasp, grasp.width_m, margin_m=carry_margin_m)
@@ -593,22 +595,30 @@ def _insertion(world: CellWorld, place_q: np.ndarray, world_from_tcp_place: Pose
 
 
 def _lead_in(world: CellWorld, part: str, grasp: Grasp, pre_q: np.ndarray, direction: np.ndarray, clear,
-             valid_insert) -> np.ndarray | None:
-    """Joint waypoints (K, 7) of a straight line along the insertion ``direction`` (world, unit) that ends at the
-    pre-place configuration ``pre_q`` and starts :data:`LEAD_IN_STEPS_M` farther back, at the first distance where
-    the part, grown by the carry margin, is ``clear``; None when none is (or the line leaves the reachable space).
-    The line is checked like the insertion (``valid_insert``, the part held as for it); the hold is left grown."""
+             valid_insert) -> tuple[np.ndarray, bool] | None:
+    """(joint waypoints (K, 7) of a straight line that ends at the pre-place configuration ``pre_q`` and starts
+    :data:`LEAD_IN_STEPS_M` back from it, at the first distance where the part, grown by the carry margin, is
+    ``clear``; whether the line comes in sideways). The line runs along the insertion ``direction`` (world, unit)
+    where that works, else along a world axis across it (a chair's back panel between two tall posts enters
+    between them from the front, where straight down it stays between them for 30 cm); None when none does (or
+    every line leaves the reachable space). The line is checked like the insertion (``valid_insert``, the part held
+    as for it); the hold is left grown."""
     world_from_tcp_pre = world.panda.forward_tcp(pre_q)
+    across = [sign * axis for axis in np.eye(3) if abs(float(axis @ direction)) < 0.1 for sign in (1.0, -1.0)]
     found = None
-    for extra_m in LEAD_IN_STEPS_M:
-        world.hold(part, grasp, grasp.width_m)
-        try:
-            line = world.straight_line(pre_q, world_from_tcp_pre, -direction * extra_m, valid_insert, part, "lead-in")
-        except TaskPlanningError:
-            break
-        world.hold(part, grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
-        if clear(line[-1]):
-            found = line[::-1]
+    for k, towards in enumerate([np.asarray(direction, dtype=np.float64), *across]):
+        for extra_m in LEAD_IN_STEPS_M:
+            world.hold(part, grasp, grasp.width_m)
+            try:
+                line = world.straight_line(pre_q, world_from_tcp_pre, -towards * extra_m, valid_insert, part,
+                                           "lead-in")
+            except TaskPlanningError:
+                break
+            world.hold(part, grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
+            if clear(line[-1]):
+                found = (line[::-1], k > 0)
+                break
+        if found is not None:
             break
     world.hold(part, grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
     return found

@@ -114,13 +114,44 @@ def test_an_insertion_starts_farther_back_where_its_pre_place_lies_between_neigh
     world.hold("plank", grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
     clear = world.validity(transit=True)
     assert not clear(pre)  # the grown plank meets the posts at the pre-place pose
-    lead_in = _lead_in(world, "plank", grasp, pre, DOWN, clear, valid_insert)
-    assert lead_in is not None and clear(lead_in[0])
+    lead_in, sideways = _lead_in(world, "plank", grasp, pre, DOWN, clear, valid_insert)
+    assert clear(lead_in[0]) and not sideways
     np.testing.assert_allclose(lead_in[-1], pre)
     tcp = np.array([panda.forward_tcp(q).position for q in lead_in])
     rise_m = tcp[0, 2] - tcp[-1, 2]
     assert rise_m == pytest.approx(LEAD_IN_STEPS_M[1], abs=1e-4)  # 4 cm more was not enough, 8 cm was
     assert np.max(np.abs(tcp[:, :2] - tcp[-1, :2])) < 1e-4  # straight down the insertion
+
+
+def test_an_insertion_between_tall_posts_starts_beside_them(panda):
+    """A 30 cm panel whose ends go between two posts 60 cm tall, 0.5 mm off its end faces: from straight above it
+    would be between them for 32 cm, farther than any lead-in; it comes in from the side, 4 cm across, and stops
+    at the pre-place pose before it goes down (as a chair's back panel between its back posts)."""
+    panel = trimesh.creation.box((0.3, 0.012, 0.2))  # its own frame = the TCP's: fingers close across y
+    post = trimesh.creation.box((0.03, 0.02, 0.6))
+    down_along_y = Pose([0, 0, 0], [np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)]) @ Pose([0, 0, 0], [0, 1, 0, 0])
+    target = Pose([0.5, 0.0, 0.2], down_along_y.quat_wxyz)  # pointing down, the panel's length along world y
+    placed = {f"post {i}": Pose([0.5, sy * (0.15 + 0.0005 + 0.01), 0.3], [1, 0, 0, 0])
+              for i, sy in enumerate((1, -1))}
+    parts = {"panel": ConvexPart.from_mesh("panel", panel)}
+    parts.update({name: ConvexPart.from_mesh(name, post) for name in placed})
+    world = CellWorld(panda, Pose.identity(), {}, parts, np.random.default_rng(0))
+    world.set_part_poses(placed)
+    grasp = Grasp(Pose.identity(), width_m=0.012, opening_m=0.024, score=1.0, centroid_score=1.0, contact_score=1.0)
+    world.hold("panel", grasp, grasp.width_m)
+    valid_insert = world.validity()
+    start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
+    place_q = world.solve_ik(target, start, valid_insert, "panel", "test")
+    pre = world.straight_line(place_q, target, -DOWN * INSERTION_M, valid_insert, "panel", "test")[-1]
+    world.hold("panel", grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
+    clear = world.validity(transit=True)
+    assert not clear(pre)
+    lead_in, sideways = _lead_in(world, "panel", grasp, pre, DOWN, clear, valid_insert)
+    assert sideways and clear(lead_in[0])
+    np.testing.assert_allclose(lead_in[-1], pre)
+    tcp = np.array([panda.forward_tcp(q).position for q in lead_in])
+    assert abs(tcp[0, 0] - tcp[-1, 0]) == pytest.approx(LEAD_IN_STEPS_M[0], abs=1e-4)  # 4 cm, out from the posts
+    assert np.max(np.abs(tcp[:, 1:] - tcp[-1, 1:])) < 1e-4  # level, along x only
 
 
 def test_a_carry_ending_between_neighbours_is_split_where_the_part_was_last_clear(panda):
