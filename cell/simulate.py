@@ -5,7 +5,9 @@ bodies (table, jig pads, pedestals) and every loose part as a dynamic compound o
 (:func:`planning.convex.convex_pieces`, each inset by half of :attr:`SimSettings.joint_clearance_m`: parts planned
 face to face meet with that clearance, as real ones do), its mass and inertia from its volume at
 :attr:`SimSettings.density_kg_m3`. The parts first settle for :attr:`SimSettings.settle_s` where they lie; one
-that moves more than :attr:`SimSettings.settle_tolerance_m` is reported (the start was not at rest).
+that moves more than :attr:`SimSettings.settle_tolerance_m` is reported (the start was not at rest). At rest in the
+kit, a part falls asleep until something touches it or the arm comes to pick it
+(:attr:`SimSettings.kit_sleep_threshold`).
 
 The arm follows the program's samples at ``rate_hz`` (one physics step per sample) under position control with the
 Franka's joint torque limits. A gripper step that narrows the opening closes the fingers (position control,
@@ -142,11 +144,11 @@ class SimSettings:
     contact_breaking_m: float = 0.02  # PyBullet's contact breaking threshold (Bullet's default) ...
     insertion_contact_breaking_m: float = 0.005  # ... and while a held part is inserted (see :meth:`_Run._insert`)
     # a part in the kit falls asleep (Bullet's deactivation) once its squared speeds (m/s, rad/s) sum below this for
-    # 2 s, until something touches it; from the approach to its pick on it never sleeps (see :meth:`_Run._wake`).
-    # None: parts never sleep. PyBullet's solver
-    # lets a part resting on its pedestal untouched creep by millimetres a minute (a standing drawer front 4.7 mm
-    # in 50 s, then grasped that far off its planned grasp, met a neighbour; a chair's back post fell off); asleep
-    # it stays where it settled. A part tipping over passes this speed well within the 2 s and keeps falling.
+    # 2 s, until something touches it; from the approach to its pick on it never sleeps (see :meth:`_Run._wake`);
+    # None: parts never sleep. PyBullet's solver lets a part resting on its pedestal untouched creep by millimetres
+    # a minute (a standing drawer front 4.7 mm in 50 s, then grasped that far off its planned grasp, met a
+    # neighbour; a chair's back post fell off); asleep, it stays where it settled. A part tipping over passes this
+    # speed well within the 2 s and keeps falling.
     kit_sleep_threshold: float | None = 1e-5
     joint_limit_margin_rad: float = 1e-3  # a joint this far beyond its position limit breaks it
     velocity_tolerance: float = 0.03  # relative: a joint faster than (1 + this) x its velocity limit breaks it
@@ -648,9 +650,8 @@ class _Run:
                             tuple(float(v) for v in self.arm_q), (float(fingers[0][0]), float(fingers[1][0])))
 
     def _wake(self, name: str) -> None:
-        """``name`` wakes and never sleeps again: from the approach to its pick on. Asleep, a part meets the fingers
-        coming down on it as an immovable body for a step, and the contact whips the wrist (joint 6 beyond its
-        velocity limit as the fingers slid down a procedural cabinet's top lying in the kit)."""
+        """``name`` wakes and never sleeps again: from the approach to its pick on, so that the approach, the grasp
+        and everything after meet the part as they would without sleeping (sleep only keeps untouched parts still)."""
         self.awake.add(name)
         if name in self.cell.parts:
             self.pb.changeDynamics(self.cell.parts[name], -1,

@@ -6,7 +6,10 @@ For every part, in assembly order, the robot
 2. approaches in a straight line along the grasp's approach axis (:data:`APPROACH_M`),
 3. closes the gripper on the part,
 4. lifts it straight up (:data:`LIFT_M`),
-5. moves (OMPL, holding the part) to the pre-place pose, :data:`INSERTION_M` back along the insertion direction,
+5. moves (OMPL, holding the part) to the pre-place pose, :data:`INSERTION_M` back along the insertion direction
+   (where that pose lies between neighbours: to the start of a lead-in along the insertion or across it, see
+   :func:`_lead_in`; else the carry's last stretch among the neighbours joins the insertion, see
+   :func:`_slot_entry`),
 6. inserts it in a straight line along the insertion direction into its target, slowly
    (:data:`INSERTION_SPEED_M_S`; where it slides along a neighbour: held off it, then sideways into contact; see
    :func:`_insertion`),
