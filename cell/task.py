@@ -604,17 +604,20 @@ def _lead_in(world: CellWorld, part: str, grasp: Grasp, pre_q: np.ndarray, direc
     ``clear``; whether the line comes in sideways). The line runs along the insertion ``direction`` (world, unit)
     where that works, else along a world axis across it (a chair's back panel between two tall posts enters
     between them from the front, where straight down it stays between them for 30 cm); None when none does (or
-    every line leaves the reachable space). The line is checked like the insertion (``valid_insert``, the part held
-    as for it); the hold is left grown."""
+    every line leaves the reachable space). A line along the insertion is checked like the insertion
+    (``valid_insert``, the part held as for it), one across it against everything, the neighbours the part touches
+    at its target included (checked like the insertion, a panel of bookcase_flaerke_0403 came in sideways through
+    a neighbour it ends against and jammed); the hold is left grown."""
     world_from_tcp_pre = world.panda.forward_tcp(pre_q)
     across = [sign * axis for axis in np.eye(3) if abs(float(axis @ direction)) < 0.1 for sign in (1.0, -1.0)]
+    everything = world.validity()  # (with the hold below) the part may not pass through what it touches at the end
     found = None
     for k, towards in enumerate([np.asarray(direction, dtype=np.float64), *across]):
         for extra_m in LEAD_IN_STEPS_M:
             world.hold(part, grasp, grasp.width_m)
             try:
-                line = world.straight_line(pre_q, world_from_tcp_pre, -towards * extra_m, valid_insert, part,
-                                           "lead-in")
+                line = world.straight_line(pre_q, world_from_tcp_pre, -towards * extra_m,
+                                           valid_insert if k == 0 else everything, part, "lead-in")
             except TaskPlanningError:
                 break
             world.hold(part, grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
