@@ -1048,9 +1048,10 @@ def _neighbour_hand_for(world_from_part: Pose, grasp: Grasp):
 
 def _pickable(grasps: Sequence[Grasp], world_from_part: Pose, support, floor_z: float,
               neighbours=()) -> list[Grasp]:
-    """The ``grasps`` clear at the pick (:func:`clear_at_pick`) of the ``support`` (the part's pedestal or the
-    board it lies on) and the floor with :data:`HAND`, and of the ``neighbours`` (other slots' bodies) with
-    :data:`NEIGHBOUR_HAND`; those whose fingers close on a slant checked with :data:`TILTED_HAND` against both."""
+    """The ``grasps`` clear at the pick (:func:`clear_at_pick`) of the ``support`` (the part's pedestal) and the
+    floor with :data:`HAND`, and of the ``neighbours`` (other slots' bodies; for a board lying on a board, the one
+    under it too) with :data:`NEIGHBOUR_HAND`; those whose fingers close on a slant checked with :data:`TILTED_HAND`
+    against both."""
     feasible = clear_at_pick(grasps, world_from_part, support, floor_z, HAND)
     if neighbours and feasible:
         feasible = clear_at_pick(feasible, world_from_part, list(neighbours), None, NEIGHBOUR_HAND)
