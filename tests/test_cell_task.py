@@ -48,6 +48,26 @@ def world_with(panda, placed: dict[str, tuple[trimesh.Trimesh, Pose]]) -> CellWo
     return world
 
 
+def posts_world(panda, name: str, mesh: trimesh.Trimesh, post: trimesh.Trimesh, placed: dict[str, Pose]):
+    """A world of posts (``post`` at each of ``placed``) and the part ``name`` held at the identity grasp (the TCP is
+    the part's frame), closing on its ``mesh``'s y extent: (world, grasp)."""
+    parts = {name: ConvexPart.from_mesh(name, mesh)}
+    parts.update({other: ConvexPart.from_mesh(other, post) for other in placed})
+    world = CellWorld(panda, Pose.identity(), {}, parts, np.random.default_rng(0))
+    world.set_part_poses(placed)
+    width = float(mesh.extents[1])
+    grasp = Grasp(Pose.identity(), width_m=width, opening_m=width + 0.012, score=1.0, centroid_score=1.0,
+                  contact_score=1.0)
+    world.hold(name, grasp, grasp.width_m)
+    return world, grasp
+
+
+def release_and_pre_place(world: CellWorld, name: str, target: Pose, valid):
+    """The release configuration at ``target`` (the TCP pose) and the pre-place one INSERTION_M above it."""
+    place_q = world.solve_ik(target, np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8]), valid, name, "test")
+    return place_q, world.straight_line(place_q, target, -DOWN * INSERTION_M, valid, name, "test")[-1]
+
+
 def task_to(target: Pose) -> PartTask:
     grasp = Grasp(Pose.identity(), width_m=0.008, opening_m=0.02, score=1.0, centroid_score=1.0, contact_score=1.0)
     return PartTask("bar", Pose([0.3, 0.3, 0.1], [1, 0, 0, 0]), target, grasp, DOWN, (), "pedestal")
@@ -101,16 +121,9 @@ def test_an_insertion_starts_farther_back_where_its_pre_place_lies_between_neigh
     posts_top_z = 0.2 + 0.13  # 13 cm above the target: 8 cm of insertion is not enough, 8 + 8 cm is
     placed = {f"post {i}": Pose([0.5 + sx * (0.004 + 0.0005 + 0.005), sy * 0.17, posts_top_z - 0.15], [1, 0, 0, 0])
               for i, (sx, sy) in enumerate(((1, 1), (-1, 1), (1, -1), (-1, -1)))}
-    parts = {"plank": ConvexPart.from_mesh("plank", plank)}
-    parts.update({name: ConvexPart.from_mesh(name, post) for name in placed})
-    world = CellWorld(panda, Pose.identity(), {}, parts, np.random.default_rng(0))
-    world.set_part_poses(placed)
-    grasp = Grasp(Pose.identity(), width_m=0.008, opening_m=0.02, score=1.0, centroid_score=1.0, contact_score=1.0)
-    world.hold("plank", grasp, grasp.width_m)
+    world, grasp = posts_world(panda, "plank", plank, post, placed)
     valid_insert = world.validity()
-    start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
-    place_q = world.solve_ik(target, start, valid_insert, "plank", "test")
-    pre = world.straight_line(place_q, target, -DOWN * INSERTION_M, valid_insert, "plank", "test")[-1]
+    _, pre = release_and_pre_place(world, "plank", target, valid_insert)
     world.hold("plank", grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
     clear = world.validity(transit=True)
     assert not clear(pre)  # the grown plank meets the posts at the pre-place pose
@@ -133,16 +146,9 @@ def test_an_insertion_between_tall_posts_starts_beside_them(panda):
     target = Pose([0.5, 0.0, 0.2], down_along_y.quat_wxyz)  # pointing down, the panel's length along world y
     placed = {f"post {i}": Pose([0.5, sy * (0.15 + 0.0005 + 0.01), 0.3], [1, 0, 0, 0])
               for i, sy in enumerate((1, -1))}
-    parts = {"panel": ConvexPart.from_mesh("panel", panel)}
-    parts.update({name: ConvexPart.from_mesh(name, post) for name in placed})
-    world = CellWorld(panda, Pose.identity(), {}, parts, np.random.default_rng(0))
-    world.set_part_poses(placed)
-    grasp = Grasp(Pose.identity(), width_m=0.012, opening_m=0.024, score=1.0, centroid_score=1.0, contact_score=1.0)
-    world.hold("panel", grasp, grasp.width_m)
+    world, grasp = posts_world(panda, "panel", panel, post, placed)
     valid_insert = world.validity()
-    start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
-    place_q = world.solve_ik(target, start, valid_insert, "panel", "test")
-    pre = world.straight_line(place_q, target, -DOWN * INSERTION_M, valid_insert, "panel", "test")[-1]
+    _, pre = release_and_pre_place(world, "panel", target, valid_insert)
     world.hold("panel", grasp, grasp.width_m, margin_m=-CARRY_CLEARANCE_M)
     clear = world.validity(transit=True)
     assert not clear(pre)
@@ -165,15 +171,9 @@ def test_a_carry_ending_between_neighbours_is_split_where_the_part_was_last_clea
     posts_top_z = 0.2 + 0.13
     placed = {f"post {i}": Pose([0.5 + sx * (0.004 + 0.0005 + 0.005), sy * 0.17, posts_top_z - 0.15], [1, 0, 0, 0])
               for i, (sx, sy) in enumerate(((1, 1), (-1, 1), (1, -1), (-1, -1)))}
-    parts = {"plank": ConvexPart.from_mesh("plank", plank)}
-    parts.update({name: ConvexPart.from_mesh(name, post) for name in placed})
-    world = CellWorld(panda, Pose.identity(), {}, parts, np.random.default_rng(0))
-    world.set_part_poses(placed)
-    grasp = Grasp(Pose.identity(), width_m=0.008, opening_m=0.02, score=1.0, centroid_score=1.0, contact_score=1.0)
-    world.hold("plank", grasp, grasp.width_m)
+    world, grasp = posts_world(panda, "plank", plank, post, placed)
     valid = world.validity()
-    start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
-    place_q = world.solve_ik(target, start, valid, "plank", "test")
+    place_q, _ = release_and_pre_place(world, "plank", target, valid)
     down = world.straight_line(place_q, target, -DOWN * 0.30, valid, "plank", "test")[::-1]  # 30 cm up to 0 cm
     carry = down[:-4]  # the carry: from 30 cm above the target to the pre-place pose, 8 cm above (2 cm steps)
     assert world.panda.forward_tcp(carry[-1]).position[2] == pytest.approx(0.2 + INSERTION_M, abs=1e-4)
