@@ -19,12 +19,12 @@ from cell.bullet import BulletClient
 from cell.resting import PhysicsRestCheck
 from cell.robot import IKError, IKSettings, Panda
 from cell.scene import FixtureConfig, Scene
-from cell.task import APPROACH_M, INSERTION_M, LIFT_M, CellWorld, PartTask, TaskPlan, TaskPlanningError, plan_tasks
+from cell.task import INSERTION_M, LIFT_M, CellWorld, PartTask, TaskPlan, TaskPlanningError, plan_tasks
 from planning.assembly import Assembly
 from planning.collision import ConvexPart, box_distance, world_bounds
 from planning.disassembly import SequenceResult
 from planning.fixture import fixture_pads
-from planning.grasp import Grasp, feasible_grasps
+from planning.grasp import APPROACH_M, Grasp, feasible_grasps
 from planning.gripper import clearance_gripper
 from planning.kitting import (
     HAND_CLEARANCE_M,

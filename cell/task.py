@@ -40,14 +40,13 @@ import numpy as np
 from cell.program import GripperStep, MotionStep, Program
 from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS, IKError, IKSettings, Panda
 from planning.collision import ConvexPart, shrunk, signed_distance
-from planning.grasp import Grasp
+from planning.grasp import APPROACH_M, Grasp
 from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path, straight_line_valid
 from planning.payload import HoldingTorques, MassProperties, carry_limits
 from planning.pose import Pose
 from planning.robot_collision import RobotCollisionChecker
 from planning.timing import JointLimits, time_path
 
-APPROACH_M = 0.08  # straight approach to the grasp and retreat after release, along the grasp's approach axis
 LIFT_M = 0.10  # straight lift after grasping, world +z
 INSERTION_M = 0.08  # straight insertion along the insertion direction into the target
 LEAD_IN_STEPS_M = (0.04, 0.08, 0.16, 0.24)  # farther back it may start, where its pre-place lies between neighbours

@@ -11,9 +11,12 @@ Pipeline
    inward normal to the opposite surface, keep pairs whose normals oppose each other within the friction cone
    (``mu = 0.5``) and whose width fits the hand (at most :data:`MAX_GRASP_WIDTH_M`). Around each contact axis try
    ``n_approaches`` approach directions; keep the poses at which the hand and fingers, opened to the contact width
-   plus :data:`GRASP_CLEARANCE_M`, do not collide with the part (FCL). Score them part-intrinsically (near the
-   centroid, pads fully on the surface), remove near-duplicates and keep the best ``max_candidates``. Results are
-   cached per (mesh, seed, parameters).
+   plus :data:`GRASP_CLEARANCE_M`, do not collide with the part (FCL), there nor on the straight approach of
+   :data:`APPROACH_M` along the approach axis that ends there (the hand swept back, one convex check), neither the
+   mesh nor its convex pieces (:func:`planning.convex.convex_pieces`: the part as the simulator and the arm's
+   planner see it, which may bulge past the mesh by centimetres where it is concave). Score them
+   part-intrinsically (near the centroid, pads fully on the surface), remove near-duplicates and keep the best
+   ``max_candidates``. Results are cached per (mesh, seed, parameters).
 2. :func:`rank`: rescore for a use: approach compatible with the insertion direction and top-down at the target.
 3. :func:`feasible_grasps`: keep grasps whose hand is collision-free against the obstacles around the part's pose
    (and along the last centimetres of the insertion motion) and above the floor, best first.
@@ -39,7 +42,7 @@ import numpy as np
 import trimesh
 
 from planning.collision import hull_edge_axes
-from planning.convex import mesh_key
+from planning.convex import convex_pieces, mesh_key
 from planning.gripper import (
     FINGER_PAD_WIDTH_M,
     HAND_FROM_TCP,
@@ -54,6 +57,7 @@ from planning.gripper import (
 from planning.pose import Pose
 
 __all__ = [
+    "APPROACH_M",
     "FRICTION_COEFFICIENT",
     "GRASP_CLEARANCE_M",
     "MIN_SIDE_CLEARANCE_M",
@@ -74,6 +78,9 @@ FRICTION_COEFFICIENT = 0.5
 """Coulomb friction assumed between pads and part: contact normals may lean atan(0.5) = 26.6 deg off the axis."""
 GRASP_CLEARANCE_M = 0.01
 """The hand approaches with its fingers this much wider than the part (5 mm each side), capped at 8 cm."""
+APPROACH_M = 0.08
+"""The hand comes to a grasp in a straight line along its approach axis over this distance, opened to the grasp's
+opening, and leaves it the same way after release; a grasp is kept only if that line is clear of the part."""
 MIN_SIDE_CLEARANCE_M = 0.0025
 """At least this gap each side while approaching, which caps the graspable width."""
 MAX_GRASP_WIDTH_M = MAX_OPENING_M - 2 * MIN_SIDE_CLEARANCE_M
@@ -540,9 +547,10 @@ def _compute_candidates(
     friction: float,
     clearance_m: float,
     gripper: GripperCollisionModel,
+    approach_m: float = APPROACH_M,
 ) -> tuple[tuple[Grasp, ...], _Stats]:
     key_mesh = mesh_key(mesh)
-    key = (key_mesh, seed, max_candidates, n_samples, n_approaches, friction, clearance_m, id(gripper))
+    key = (key_mesh, seed, max_candidates, n_samples, n_approaches, friction, clearance_m, id(gripper), approach_m)
     cached = _CANDIDATE_CACHE.get(key)
     if cached is not None:
         _CANDIDATE_CACHE.move_to_end(key)
@@ -554,6 +562,9 @@ def _compute_candidates(
         poses, widths, pair = _candidate_poses(p1, p2, n_approaches)
         openings = np.minimum(widths + clearance_m, gripper.max_opening_m)
         bvh = _bvh(mesh, key_mesh)
+        swept = gripper.swept_back(approach_m) if approach_m > 0 else gripper
+        # the simulator's (and the arm planner's) part is its convex pieces, which may bulge past the mesh
+        pieces = [(piece, _bvh(piece)) for piece in convex_pieces(mesh)]
         # pairs come in random (sampling) order: check them in chunks and stop once there are plenty of distinct
         # collision-free poses, which keeps simple parts fast without losing spread over the part
         free = np.zeros(len(poses), dtype=bool)
@@ -562,6 +573,11 @@ def _compute_candidates(
         for start in range(0, len(poses), chunk):
             part = slice(start, start + chunk)
             free[part] = _free_of_part(gripper, mesh, bvh, poses[part], openings[part])
+            # the straight approach to the pose (and the retreat from it) clear too, of the mesh and of the pieces
+            for body, body_bvh in [(mesh, bvh), *pieces]:
+                rows = start + np.flatnonzero(free[part])
+                if len(rows):
+                    free[rows] = _free_of_part(swept, body, body_bvh, poses[rows], openings[rows])
             stats.poses = min(start + chunk, len(poses))
             seen.update(map(tuple, _dedup_keys(poses[part][free[part]])))
             if len(seen) >= _ENOUGH_DISTINCT_FACTOR * max_candidates:
@@ -682,7 +698,8 @@ def explain_no_grasp(
     return (
         f"{part_name}: {stats.pairs} antipodal contact pairs fit between the fingers, but at all "
         f"{stats.poses} hand poses tried ({n_approaches} approach directions each) the hand or fingers collide with "
-        f"the part: a contact must lie within {TCP_TO_PALM_M * 100:.1f} cm of an edge (the fingers are "
+        f"the part there or on the straight {APPROACH_M * 100:.0f} cm approach to it: a contact must lie within "
+        f"{TCP_TO_PALM_M * 100:.1f} cm of an edge (the fingers are "
         f"{USABLE_FINGER_DEPTH_M * 100:.1f} cm deep) with room for the fingertips beside it"
     )
 

@@ -293,6 +293,21 @@ class GripperCollisionModel:
         for obj, p in zip(objects, pieces):
             obj.setTransform(fcl.Transform(p[:3, :3], p[:3, 3]))
 
+    def swept_back(self, distance_m: float) -> GripperCollisionModel:
+        """This hand with every piece swept ``distance_m`` back along -z (from the fingertips towards the hand):
+        what the hand and fingers pass through on a straight approach of that length ending at the pose it is
+        checked at, or on the retreat starting there, at a fixed opening. Each swept piece is the convex hull of
+        the piece and its copy shifted back (a convex piece swept along a line stays convex), so one check of a
+        pose covers the whole straight line, with no gap between samples."""
+        if not np.isfinite(distance_m) or distance_m < 0.0:
+            raise ValueError(f"distance_m must be a finite length >= 0, got {distance_m}")
+        g = self.geometry
+        hand = _swept_hull(g.hand_vertices, distance_m)
+        finger = _swept_hull(g.finger_vertices, distance_m)
+        return GripperCollisionModel(dataclasses.replace(
+            g, hand_vertices=hand.vertices, hand_faces=hand.faces, finger_vertices=finger.vertices,
+            finger_faces=finger.faces))
+
     def collides(
         self,
         frame_from_tcp: Pose | np.ndarray,
@@ -329,6 +344,13 @@ class GripperCollisionModel:
 def default_gripper() -> GripperCollisionModel:
     """The collision model of pybullet_data's Panda hand (built once)."""
     return GripperCollisionModel()
+
+
+def _swept_hull(vertices: np.ndarray, distance_m: float) -> trimesh.Trimesh:
+    shifted = vertices - np.array([0.0, 0.0, distance_m])
+    hull = trimesh.convex.convex_hull(np.concatenate([vertices, shifted]))
+    return trimesh.Trimesh(np.asarray(hull.vertices, dtype=np.float64), np.asarray(hull.faces, dtype=np.int64),
+                           process=False)
 
 
 def _grown(vertices: np.ndarray, margin_m: float) -> np.ndarray:

@@ -37,7 +37,7 @@ import numpy as np
 import trimesh
 
 from planning.fixture import FINGER_CLEARANCE_M, MIN_PAD_FRACTION
-from planning.grasp import Grasp, feasible_grasps
+from planning.grasp import APPROACH_M, Grasp, feasible_grasps
 from planning.gripper import clearance_gripper
 from planning.pose import Pose
 
@@ -199,7 +199,9 @@ class KittingError(RuntimeError):
 
 def stable_rest_poses(mesh: trimesh.Trimesh, max_poses: int = 6) -> list[tuple[np.ndarray, float]]:
     """(rest_from_part 4x4, probability), most probable first: the part resting on z = 0, centred in x-y."""
-    transforms, probabilities = trimesh.poses.compute_stable_poses(mesh, n_samples=1, threshold=0.0)
+    with np.errstate(invalid="ignore"):  # a sliver face's solid angle is sqrt(< 0): NaN, taken as improbable below
+        transforms, probabilities = trimesh.poses.compute_stable_poses(mesh, n_samples=1, threshold=0.0)
+    probabilities = np.nan_to_num(np.asarray(probabilities, dtype=np.float64), nan=0.0)
     out = []
     for transform, probability in sorted(zip(transforms, probabilities), key=lambda tp: -tp[1])[:max_poses]:
         moved = mesh.vertices @ transform[:3, :3].T + transform[:3, 3]
@@ -1027,11 +1029,13 @@ def _picks_from_above(grasps: Sequence[Grasp], rest_from_part: np.ndarray) -> in
 
 
 def clear_at_pick(grasps: Sequence[Grasp], world_from_part: Pose, obstacles, floor_z: float,
-                  gripper) -> list[Grasp]:
+                  gripper, approach_m: float = 0.0) -> list[Grasp]:
     """The ``grasps`` (in their order) whose hand is clear of ``obstacles`` both opened to ``opening_m``, as it
-    arrives, and closed to ``width_m`` on the part, as it lifts: a closing fingertip that reaches below a board's
-    edge moves towards the pedestal under it (5 mm per finger), which the open hand alone does not show."""
-    arriving = feasible_grasps(grasps, world_from_part, obstacles, None, floor_z=floor_z, gripper=gripper)
+    arrives (over the last ``approach_m`` of its straight approach too), and closed to ``width_m`` on the part, as
+    it lifts: a closing fingertip that reaches below a board's edge moves towards the pedestal under it (5 mm per
+    finger), which the open hand alone does not show."""
+    arriving = feasible_grasps(grasps, world_from_part, obstacles, None, floor_z=floor_z, retreat_m=approach_m,
+                               gripper=gripper)
     if not arriving:
         return []
     closed = feasible_grasps([dataclasses.replace(g, opening_m=g.width_m) for g in arriving], world_from_part,
@@ -1049,10 +1053,10 @@ def _neighbour_hand_for(world_from_part: Pose, grasp: Grasp):
 def _pickable(grasps: Sequence[Grasp], world_from_part: Pose, support, floor_z: float,
               neighbours=()) -> list[Grasp]:
     """The ``grasps`` clear at the pick (:func:`clear_at_pick`) of the ``support`` (the part's pedestal) and the
-    floor with :data:`HAND`, and of the ``neighbours`` (other slots' bodies; for a board lying on a board, the one
-    under it too) with :data:`NEIGHBOUR_HAND`; those whose fingers close on a slant checked with :data:`TILTED_HAND`
-    against both."""
-    feasible = clear_at_pick(grasps, world_from_part, support, floor_z, HAND)
+    floor with :data:`HAND`, along the whole straight approach (the arm's motion does not check the hand against
+    them), and of the ``neighbours`` (other slots' bodies; for a board lying on a board, the one under it too) with
+    :data:`NEIGHBOUR_HAND`; those whose fingers close on a slant checked with :data:`TILTED_HAND` against both."""
+    feasible = clear_at_pick(grasps, world_from_part, support, floor_z, HAND, approach_m=APPROACH_M)
     if neighbours and feasible:
         feasible = clear_at_pick(feasible, world_from_part, list(neighbours), None, NEIGHBOUR_HAND)
     slanted = [g for g in feasible if _slanted(world_from_part, g)]

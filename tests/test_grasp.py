@@ -227,6 +227,45 @@ def test_round_leg_has_grasps():
         assert not hand_hits(g.part_from_tcp, g.opening_m, leg, Pose.identity())
 
 
+def _approach_hits(grasp, bodies, step_m: float = 0.01) -> bool:
+    """Whether the hand, opened to the grasp's opening, meets one of ``bodies`` (watertight meshes, part frame) at
+    some pose of its straight approach (sampled every ``step_m`` from APPROACH_M back to the grasp)."""
+    back = -grasp.part_from_tcp.rotation[:, 2]
+    for d in np.arange(0.0, grasp_module.APPROACH_M + 1e-9, step_m):
+        pose = Pose(grasp.part_from_tcp.position + d * back, grasp.part_from_tcp.quat_wxyz)
+        if any(hand_hits(pose, grasp.opening_m, body, Pose.identity()) for body in bodies):
+            return True
+    return False
+
+
+def test_approach_to_every_grasp_clears_the_part():
+    """A ring: a hand straddling its wall could come in through the wall across the hole. Every grasp's straight
+    approach is clear of the ring, checked with the independent hand model; without the check some are not."""
+    ring = trimesh.creation.annulus(r_min=0.08, r_max=0.10, height=0.02, sections=48)
+    grasps = antipodal_grasps(ring, np.random.default_rng(0))
+    assert len(grasps) >= 20
+    for g in grasps[:25]:
+        assert not _approach_hits(g, [ring])
+    unswept, _ = grasp_module._compute_candidates(ring, 0, 100, 200, 12, grasp_module.FRICTION_COEFFICIENT,
+                                                  grasp_module.GRASP_CLEARANCE_M, hand.default_gripper(), 0.0)
+    assert sum(_approach_hits(g, [ring]) for g in unswept[:25]) >= 1
+
+
+def test_grasps_clear_the_convex_pieces_the_simulator_holds():
+    """A large ring decomposes into 12 hulls whose chords bulge 7 mm into the hole, more than the fingers' 5 mm
+    clearance: the simulated part is those hulls, so no grasp may put the inner finger inside one (without that
+    check about half of the ring's grasps do)."""
+    from planning.convex import convex_pieces
+
+    ring = trimesh.creation.annulus(r_min=0.20, r_max=0.22, height=0.02, sections=96)
+    pieces = convex_pieces(ring)
+    assert len(pieces) > 1
+    grasps = antipodal_grasps(ring, np.random.default_rng(0))
+    assert len(grasps) >= 20
+    for g in grasps[::4]:
+        assert not _approach_hits(g, pieces)
+
+
 def test_sealed_hollow_box_explains_the_collisions():
     outer, inner = trimesh.creation.box((0.2, 0.2, 0.2)), trimesh.creation.box((0.18, 0.18, 0.18))
     inner.invert()  # a closed shell with 1 cm walls: every antipodal pair is across a wall the fingers cannot reach
