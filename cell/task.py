@@ -64,6 +64,7 @@ NEAR_END_RAD = 0.15  # ... except this close (joint-space distance) to an end th
 SLIDE_CLEARANCE_M = 0.004  # a part inserted along a neighbour's face comes down this far off it
 SLIDE_SAMPLES = 5  # poses along the insertion where the neighbours it slides along are looked for
 SIDE_NORMAL_MAX_COS = 0.3  # a contact normal this close to perpendicular to the insertion is a neighbour's side
+HELD_OFF_TOLERANCE_M = 1e-4  # a part held off its neighbour by the slide clearance may sink this far into another
 INSERTION_SPEED_M_S = 0.05  # the TCP's top speed (m/s) while a part goes into its target: see _insertion_limits
 LIMIT_FRACTION = 0.9  # motions are planned at this fraction of the published limits: headroom for tracking
 PANDA_LIMITS = JointLimits(LIMIT_FRACTION * VELOCITY_LIMITS, LIMIT_FRACTION * ACCELERATION_LIMITS,
@@ -240,12 +241,15 @@ class CellWorld:
         :data:`SIDE_NORMAL_MAX_COS` of perpendicular to the insertion (what the part lands on does not count).
         Sliding down a neighbour's face 0.25 mm off it, the simulated part caught on its edge and twisted in the
         hand by 18-65 degrees (chairs' side stretchers against the middle stretcher they butt onto). Neighbours on
-        opposite sides (a slot) cancel: the part then comes straight down the middle."""
+        opposite sides (a slot) cancel: the part then comes straight down the middle. No offset where the part held
+        off would run into a neighbour (:meth:`_held_off_blocked`): four splayed legs in the sockets of a table top
+        pushed it off sideways, and the top came down 4 mm off and sat on their ends 13 mm high
+        (table_jokkmokk_0694)."""
         direction = task.insertion_direction
+        samples = [Pose(task.world_from_target.position - direction * INSERTION_M * fraction,
+                        task.world_from_target.quat_wxyz) for fraction in np.linspace(1.0, 0.0, SLIDE_SAMPLES)]
         away, seen = np.zeros(3), set()
-        for fraction in np.linspace(1.0, 0.0, SLIDE_SAMPLES):
-            pose = Pose(task.world_from_target.position - direction * INSERTION_M * fraction,
-                        task.world_from_target.quat_wxyz)
+        for pose in samples:
             for other, other_pose in self.part_poses.items():
                 if other == part or other in seen:
                     continue
@@ -260,7 +264,24 @@ class CellWorld:
                 sideways = normal - float(normal @ direction) * direction
                 away += sideways / np.linalg.norm(sideways)
         norm = float(np.linalg.norm(away))
-        return away / norm * SLIDE_CLEARANCE_M if norm > 1e-6 else np.zeros(3)
+        if norm <= 1e-6:
+            return np.zeros(3)
+        shift = away / norm * SLIDE_CLEARANCE_M
+        return np.zeros(3) if self._held_off_blocked(part, samples, shift) else shift
+
+    def _held_off_blocked(self, part: str, samples: Sequence[Pose], shift_m: np.ndarray) -> bool:
+        """Whether ``part`` at any of the insertion poses ``samples``, moved by ``shift_m`` (world, m), sinks more
+        than :data:`HELD_OFF_TOLERANCE_M` into a placed part (one it lands on included: shifted across a slanted
+        face it would sink into it)."""
+        for pose in samples:
+            shifted = Pose(pose.position + shift_m, pose.quat_wxyz)
+            for other, other_pose in self.part_poses.items():
+                if other == part:
+                    continue
+                result = signed_distance(self.parts[other], other_pose, self.parts[part], shifted, cutoff_m=0.0)
+                if result.measured and result.distance_m < -HELD_OFF_TOLERANCE_M:
+                    return True
+        return False
 
     def _collision_words(self, q: np.ndarray, valid=None) -> str:
         """The first collision at ``q`` as ``valid`` (a :class:`_Validity`) sees it: its checker, skipping what it

@@ -7,14 +7,16 @@ part's target pose).
 
 Pipeline
 --------
-1. :func:`antipodal_grasps`: sample surface points with normals (seeded), cast a ray from each point along its
-   inward normal to the opposite surface, keep pairs whose normals oppose each other within the friction cone
-   (``mu = 0.5``) and whose width fits the hand (at most :data:`MAX_GRASP_WIDTH_M`). Around each contact axis try
-   ``n_approaches`` approach directions; keep the poses at which the hand and fingers, opened to the contact width
-   plus :data:`GRASP_CLEARANCE_M`, do not collide with the part (FCL), there nor on the straight approach of
+1. :func:`antipodal_grasps`: sample surface points with normals (seeded), cast a ray from each point along its inward
+   normal to the opposite surface (the first surface it meets and, for a part that is not convex, the last: across a
+   hollow tube's outside, not only across its wall), keep pairs whose normals oppose each other within the friction
+   cone (``mu = 0.5``) and whose width fits the hand (at most :data:`MAX_GRASP_WIDTH_M`). Around each contact axis
+   try ``n_approaches`` approach directions; keep the poses at which the hand and fingers, opened to the contact
+   width plus :data:`GRASP_CLEARANCE_M`, do not collide with the part (FCL), there nor on the straight approach of
    :data:`APPROACH_M` along the approach axis that ends there (the hand swept back, one convex check), neither the
-   mesh nor its convex pieces (:func:`planning.convex.convex_pieces`: the part as the simulator and the arm's
-   planner see it, which may bulge past the mesh by centimetres where it is concave). Score them
+   mesh nor its convex pieces (:func:`planning.convex.convex_pieces`: the part as the simulator and the arm's planner
+   see it, which may bulge past the mesh by centimetres where it is concave), and the fingers closed to the contact
+   width plus :data:`CLOSING_SLACK_M` touch neither (the pads meet the contact pair first). Score them
    part-intrinsically (near the centroid, pads fully on the surface), remove near-duplicates and keep the best
    ``max_candidates``. Results are cached per (mesh, seed, parameters).
 2. :func:`rank`: rescore for a use: approach compatible with the insertion direction and top-down at the target.
@@ -58,6 +60,7 @@ from planning.pose import Pose
 
 __all__ = [
     "APPROACH_M",
+    "CLOSING_SLACK_M",
     "FRICTION_COEFFICIENT",
     "GRASP_CLEARANCE_M",
     "MIN_SIDE_CLEARANCE_M",
@@ -81,6 +84,9 @@ GRASP_CLEARANCE_M = 0.01
 APPROACH_M = 0.08
 """The hand comes to a grasp in a straight line along its approach axis over this distance, opened to the grasp's
 opening, and leaves it the same way after release; a grasp is kept only if that line is clear of the part."""
+CLOSING_SLACK_M = 0.002
+"""A grasp is kept only if the fingers closed to its width plus this (1 mm each side) touch neither the part nor its
+convex pieces: closing, the pads meet the contact pair before anything else."""
 MIN_SIDE_CLEARANCE_M = 0.0025
 """At least this gap each side while approaching, which caps the graspable width."""
 MAX_GRASP_WIDTH_M = MAX_OPENING_M - 2 * MIN_SIDE_CLEARANCE_M
@@ -303,6 +309,22 @@ def _first_hits(mesh: trimesh.Trimesh, origins: np.ndarray,
     return locations, ray_index, normals[face[ray_index]]
 
 
+def _last_hits(mesh: trimesh.Trimesh, origins: np.ndarray,
+               directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Like :func:`_first_hits`, the last surface hit of each ray that meets the surface more than once (the far
+    side of a hollow or concave part), for meshes that are not closed and convex."""
+    locations, ray_index, tri_index = mesh.ray.intersects_location(origins, directions, multiple_hits=True)
+    if len(ray_index) == 0:
+        return np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+    distance = np.einsum("ij,ij->i", locations - origins[ray_index], directions[ray_index])
+    order = np.lexsort((-distance, ray_index))  # per ray, farthest first; rays ascending
+    rays, first = np.unique(ray_index[order], return_index=True)
+    counts = np.bincount(ray_index, minlength=len(origins))[rays]
+    chosen = order[first[counts > 1]]
+    chosen = chosen[np.argsort(ray_index[chosen], kind="stable")]
+    return locations[chosen], ray_index[chosen], np.asarray(mesh.face_normals)[tri_index[chosen]]
+
+
 def _antipodal_pairs(
     mesh: trimesh.Trimesh, seed: int, n_samples: int, friction: float, stats: _Stats
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -314,7 +336,12 @@ def _antipodal_pairs(
     stats.samples = len(points)
     if len(points) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    locations, ray_index, n2 = _first_hits(mesh, points - normals * _RAY_INSET_M, -normals)
+    origins = points - normals * _RAY_INSET_M
+    locations, ray_index, n2 = _first_hits(mesh, origins, -normals)
+    if _convex_planes(mesh) is None:  # and where the ray leaves the part for good: across a hollow tube
+        far, far_index, far_normals = _last_hits(mesh, origins, -normals)
+        locations, ray_index, n2 = (np.concatenate([locations, far]), np.concatenate([ray_index, far_index]),
+                                    np.concatenate([n2, far_normals]))
     stats.hits = len(ray_index)
     if len(ray_index) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
@@ -578,6 +605,14 @@ def _compute_candidates(
                 rows = start + np.flatnonzero(free[part])
                 if len(rows):
                     free[rows] = _free_of_part(swept, body, body_bvh, poses[rows], openings[rows])
+            # closing, the pads meet the contact pair first: nothing thicker lies between them (a thin lip beside a
+            # thick body, a hull that bulges there)
+            if CLOSING_SLACK_M is not None:
+                for body, body_bvh in [(mesh, bvh), *pieces]:
+                    rows = start + np.flatnonzero(free[part])
+                    if len(rows):
+                        free[rows] = _free_of_part(gripper, body, body_bvh, poses[rows],
+                                                   widths[rows] + CLOSING_SLACK_M)
             stats.poses = min(start + chunk, len(poses))
             seen.update(map(tuple, _dedup_keys(poses[part][free[part]])))
             if len(seen) >= _ENOUGH_DISTINCT_FACTOR * max_candidates:

@@ -94,6 +94,25 @@ def test_a_part_between_two_neighbours_or_landing_on_one_comes_straight_down(pan
     assert INSERTION_M > 0.02  # the cross stretcher is met only near the end of the insertion above
 
 
+def test_a_part_is_not_held_off_into_another_neighbour(panda):
+    """The cross stretcher would hold the bar 4 mm off towards -x, but a slanted face (45 degrees: not a side it
+    slides along) touches the bar's -x bottom edge at its target: held off, the bar would sink 2.8 mm into it, so it
+    comes straight down (four splayed legs in a table top's sockets pushed the top off sideways onto their ends)."""
+    target = Pose([0.5, 0.0, 0.2], [1, 0, 0, 0])
+    cross = Pose([0.5 + 0.004 + 0.09, 0.0, 0.2], [1, 0, 0, 0])
+    wedge = trimesh.creation.box((0.02, 0.19, 0.02))
+    half = np.sqrt(0.5)
+    wedge.apply_transform(np.array([[half, 0, half, 0], [0, 1, 0, 0], [-half, 0, half, 0], [0, 0, 0, 1.0]]))
+    corner, normal = np.array([0.5 - 0.004, 0.0, 0.2 - 0.01]), np.array([half, 0.0, half])
+    placed = {"cross": (CROSS, cross), "wedge": (wedge, Pose(corner - normal * 0.01, [1, 0, 0, 0]))}
+    assert np.all(world_with(panda, placed).clearance_shift("bar", task_to(target)) == 0.0)
+    placed["wedge"] = (wedge, Pose(corner - normal * 0.0105, [1, 0, 0, 0]))  # 0.5 mm off: 2.3 mm in, still too deep
+    assert np.all(world_with(panda, placed).clearance_shift("bar", task_to(target)) == 0.0)
+    del placed["wedge"]
+    assert world_with(panda, placed).clearance_shift("bar", task_to(target)) == pytest.approx(
+        [-SLIDE_CLEARANCE_M, 0.0, 0.0], abs=1e-9)
+
+
 def test_insertions_are_timed_slowly_enough_for_tight_fits(panda):
     world = world_with(panda, {})
     down = Pose([0.5, 0.0, 0.25], [0.0, 1.0, 0.0, 0.0])  # TCP pointing down

@@ -266,6 +266,45 @@ def test_grasps_clear_the_convex_pieces_the_simulator_holds():
         assert not _approach_hits(g, pieces)
 
 
+def _square_tube(outer: float = 0.052, wall: float = 0.0015, length: float = 0.30) -> trimesh.Trimesh:
+    """A hollow square tube (a table's column), one closed shell along z, its sides turned 45 degrees about z."""
+    return trimesh.creation.annulus(r_min=(outer - 2 * wall) / np.sqrt(2), r_max=outer / np.sqrt(2), height=length,
+                                    sections=4)
+
+
+def test_hollow_tube_is_grasped_across_its_outside():
+    """A ray into a tube's wall first meets the wall's inner face, 1.5 mm in; where it leaves the tube for good,
+    on the far side, is the grasp a hand takes: across the outside (52 mm). Before, most grasps held a wall's end
+    between a finger outside and one inside the tube."""
+    tube = _square_tube()
+    grasps = antipodal_grasps(tube, np.random.default_rng(0))
+    across = [g for g in grasps if abs(g.width_m - 0.052) < 5e-4]
+    assert len(across) >= 50  # without the far side, only rays starting within a wall's thickness of a corner
+    for g in across[:10]:
+        assert not hand_hits(g.part_from_tcp, g.opening_m, tube, Pose.identity())
+
+
+def test_pads_close_on_the_contact_pair_first(monkeypatch):
+    """A 2 mm plate with a 6 mm rib along it: fingers opened 1 cm wider than the plate clear the rib, but a grasp
+    on the plate beside it would close on the rib first. No grasp's fingers, closed to its width plus 1.9 mm,
+    touch the part (checked with the independent model); without the closing check some do."""
+    plate, _ = box_at((0.06, 0.002, 0.20), (0.0, 0.0, 0.0))
+    rib, _ = box_at((0.004, 0.006, 0.20), (0.012, 0.0, 0.0))
+    part = trimesh.util.concatenate([plate, rib.apply_translation((0.012, 0.0, 0.0))])
+
+    def closing_hits(grasps):
+        return sum(any(hand_hits(g.part_from_tcp, g.width_m + 0.0019, body, Pose.identity())
+                       for body in (plate, rib)) for g in grasps)
+
+    grasps = antipodal_grasps(part, np.random.default_rng(0))
+    assert len(grasps) >= 20
+    assert closing_hits(grasps) == 0
+    monkeypatch.setattr(grasp_module, "CLOSING_SLACK_M", None)
+    grasp_module._CANDIDATE_CACHE.clear()
+    assert closing_hits(antipodal_grasps(part, np.random.default_rng(0))) >= 1
+    grasp_module._CANDIDATE_CACHE.clear()
+
+
 def test_sealed_hollow_box_explains_the_collisions():
     outer, inner = trimesh.creation.box((0.2, 0.2, 0.2)), trimesh.creation.box((0.18, 0.18, 0.18))
     inner.invert()  # a closed shell with 1 cm walls: every antipodal pair is across a wall the fingers cannot reach
