@@ -39,6 +39,7 @@ from planning.kitting import (
 from planning.motion import MotionSettings
 from planning.payload import (
     HOLDING_TORQUE_FRACTION,
+    PANDA_PAYLOAD_KG,
     PANDA_TORQUE_LIMITS_NM,
     HoldingTorques,
     MassProperties,
@@ -101,6 +102,24 @@ def out_of_reach(scene: Scene, assembly: Assembly) -> list[tuple[str, float]]:
         if nearest > PANDA_REACH_M + HAND_LENGTH_M - 0.05:
             far.append((part.name, nearest))
     return far
+
+
+def too_heavy(assembly: Assembly, payload_kg: float = PANDA_PAYLOAD_KG) -> list[tuple[str, float]]:
+    """Parts heavier than the Panda's rated payload at the parts' density (:data:`DEFAULT_DENSITY_KG_M3`, wood):
+    (name, mass in kg), heaviest first."""
+    masses = [(part.name, mass_properties(part.mesh).mass_kg) for part in assembly.parts]
+    return sorted(((name, kg) for name, kg in masses if kg > payload_kg), key=lambda item: -item[1])
+
+
+def grasps_clear_at_target(grasps: list[Grasp], world_from_target: Pose, obstacles, insertion_world: np.ndarray,
+                           floor_z: float) -> list[Grasp]:
+    """Of ``grasps``, those whose hand (grown by :data:`HAND_CLEARANCE_M`) clears the ``obstacles`` ((mesh,
+    world_from_mesh) pairs: the parts placed before, the jig's pads) and the table top at ``floor_z`` with the part
+    at its target and along the whole straight insertion of :data:`INSERTION_M` along ``insertion_world`` that the
+    arm makes (checked along its last 3 cm only, a finger of bookcase_expedit_0373 met a shelf higher up), ranked for
+    the target, best first."""
+    return feasible_grasps(grasps, world_from_target, obstacles, insertion_world, floor_z=floor_z,
+                           insertion_sweep_m=INSERTION_M, gripper=clearance_gripper(HAND_CLEARANCE_M))
 
 
 def _table(scene: Scene) -> StaticObstacle:
@@ -401,6 +420,12 @@ class _Kit:
                                if box_distance(bounds[n], bounds[name]) < NEAR_TARGET_M]
             ranked[name] = self._hand_grasps(name, hand_check.candidates[name], self.near[name])
         self.reach, self.hand_check = kit_reach, hand_check
+        for name in order:  # grasps, but none whose hand clears the parts before it: placed earlier it may
+            if hand_check.candidates[name] and not ranked[name]:
+                raise _KitFailed(self, KittingError(
+                    f"part {name!r}: no grasp works at its target (none of its {len(hand_check.candidates[name])} "
+                    f"grasps keeps the hand clear of the parts placed before it and of the jig's pads along its "
+                    f"{INSERTION_M * 100:.0f} cm insertion)", NO_GRASP_AT_TARGET, name))
 
         def ok_at_target(name: str, grasp: Grasp) -> bool:
             return kit_reach.at_target(name, grasp) is not None
@@ -419,10 +444,9 @@ class _Kit:
 
     def _hand_grasps(self, name: str, grasps: list[Grasp], present: list[str]) -> list[Grasp]:
         """Of ``grasps``, those whose hand clears the parts ``present`` and the jig's pads at the part's target
-        (and along its insertion), ranked for the target."""
+        (and along its insertion), ranked for the target (:func:`grasps_clear_at_target`)."""
         obstacles = [(self._assembly.part(n).mesh, self._targets[n]) for n in present] + self._pad_obstacles
-        return feasible_grasps(grasps, self._targets[name], obstacles, self.insertion[name], floor_z=self._floor_z,
-                               gripper=clearance_gripper(HAND_CLEARANCE_M))
+        return grasps_clear_at_target(grasps, self._targets[name], obstacles, self.insertion[name], self._floor_z)
 
     def blockers(self, part: str) -> frozenset[str] | None:
         """The fewest parts placed before ``part`` that keep the hand or the arm from one of its grasps at its
@@ -555,4 +579,5 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
     return CellPlan(world_from_assembly, static, slots, tasks, task_plan, limits, seconds, sequence=sequence)
 
 
-__all__ = ["CellPlan", "PlanningFailed", "StaticObstacle", "out_of_reach", "plan_cell"]
+__all__ = ["CellPlan", "PlanningFailed", "StaticObstacle", "grasps_clear_at_target", "out_of_reach", "plan_cell",
+           "too_heavy"]

@@ -16,7 +16,7 @@ Pipeline
    :data:`APPROACH_M` along the approach axis that ends there (the hand swept back, one convex check), neither the
    mesh nor its convex pieces (:func:`planning.convex.convex_pieces`: the part as the simulator and the arm's planner
    see it, which may bulge past the mesh by centimetres where it is concave), and the fingers closed to the contact
-   width plus :data:`CLOSING_SLACK_M` touch neither (the pads meet the contact pair first). Score them
+   width plus :data:`CLOSING_SLACK_M` do not touch the mesh (the pads meet the contact pair first). Score them
    part-intrinsically (near the centroid, pads fully on the surface), remove near-duplicates and keep the best
    ``max_candidates``. Results are cached per (mesh, seed, parameters).
 2. :func:`rank`: rescore for a use: approach compatible with the insertion direction and top-down at the target.
@@ -85,8 +85,8 @@ APPROACH_M = 0.08
 """The hand comes to a grasp in a straight line along its approach axis over this distance, opened to the grasp's
 opening, and leaves it the same way after release; a grasp is kept only if that line is clear of the part."""
 CLOSING_SLACK_M = 0.002
-"""A grasp is kept only if the fingers closed to its width plus this (1 mm each side) touch neither the part nor its
-convex pieces: closing, the pads meet the contact pair before anything else."""
+"""A grasp is kept only if the fingers closed to its width plus this (1 mm each side) do not touch the part:
+closing, the pads meet the contact pair before anything else."""
 MIN_SIDE_CLEARANCE_M = 0.0025
 """At least this gap each side while approaching, which caps the graspable width."""
 MAX_GRASP_WIDTH_M = MAX_OPENING_M - 2 * MIN_SIDE_CLEARANCE_M
@@ -606,13 +606,10 @@ def _compute_candidates(
                 if len(rows):
                     free[rows] = _free_of_part(swept, body, body_bvh, poses[rows], openings[rows])
             # closing, the pads meet the contact pair first: nothing thicker lies between them (a thin lip beside a
-            # thick body, a hull that bulges there)
-            if CLOSING_SLACK_M is not None:
-                for body, body_bvh in [(mesh, bvh), *pieces]:
-                    rows = start + np.flatnonzero(free[part])
-                    if len(rows):
-                        free[rows] = _free_of_part(gripper, body, body_bvh, poses[rows],
-                                                   widths[rows] + CLOSING_SLACK_M)
+            # thick body)
+            rows = start + np.flatnonzero(free[part])
+            if CLOSING_SLACK_M is not None and len(rows):
+                free[rows] = _free_of_part(gripper, mesh, bvh, poses[rows], widths[rows] + CLOSING_SLACK_M)
             stats.poses = min(start + chunk, len(poses))
             seen.update(map(tuple, _dedup_keys(poses[part][free[part]])))
             if len(seen) >= _ENOUGH_DISTINCT_FACTOR * max_candidates:

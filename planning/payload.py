@@ -33,6 +33,8 @@ from planning.timing import JointLimits
 
 DEFAULT_DENSITY_KG_M3 = 600.0
 """Density of the parts (wood) for their masses, in the simulator and for payload limits."""
+PANDA_PAYLOAD_KG = 3.0
+"""The Panda's rated payload (Franka's datasheet): the cell refuses a heavier part instead of trying to carry it."""
 WRIST_TORQUE_NM = 12.0
 """Torque limit of the wrist joints panda_joint5..7 (Franka's published figure)."""
 TCP_TO_WRIST_M = 0.21

@@ -5,10 +5,11 @@ import numpy as np
 import trimesh
 
 from cell.bullet import BulletClient
-from cell.plan import _KitReach
+from cell.plan import HAND_CLEARANCE_M, _KitReach, grasps_clear_at_target
 from cell.robot import Panda
 from cell.scene import load_scene
-from planning.grasp import Grasp
+from planning.grasp import Grasp, feasible_grasps
+from planning.gripper import clearance_gripper
 from planning.pose import Pose
 
 BOARD = trimesh.creation.box((0.2, 0.02, 0.1))  # standing on its long edge, metres
@@ -42,3 +43,19 @@ def test_the_arm_at_a_target_takes_other_configurations_where_the_first_meet_the
         assert np.linalg.norm(np.array(placed[0]) - np.array(first[0])) > 0.1  # another arm configuration
         for q, expected in zip(placed[:1], [target @ grasp.part_from_tcp]):
             assert np.allclose(reach.checker.world_from_tcp(np.array(q))[:3, 3], expected.position, atol=1e-3)
+
+
+def test_a_grasp_at_the_target_clears_the_whole_insertion():
+    """A post pushed 8 cm down into its target under a shelf: the hand, top-down on the post, clears the shelf at
+    the target and over the last 3 cm, and meets it 4 cm up. The cell inserts along INSERTION_M (8 cm), so it
+    rules the grasp out (a finger of bookcase_expedit_0373 met a shelf so); the 3 cm check kept it."""
+    target = Pose([0.5, 0.0, 0.3], [1.0, 0.0, 0.0, 0.0])
+    grasp = Grasp(Pose([0.0, 0.0, 0.08], DOWN_TCP), width_m=0.02, opening_m=0.03, score=1.0, centroid_score=1.0,
+                  contact_score=1.0)
+    hand_top_z = clearance_gripper(HAND_CLEARANCE_M).vertices(target @ grasp.part_from_tcp, 0.03)[:, 2].max()
+    shelf = [(trimesh.creation.box((0.3, 0.3, 0.005)), Pose([0.5, 0.0, hand_top_z + 0.04 + 0.0025], [1, 0, 0, 0]))]
+    down = np.array([0.0, 0.0, -1.0])
+    assert grasps_clear_at_target([grasp], target, [], down, 0.0) != []
+    assert feasible_grasps([grasp], target, shelf, down, floor_z=0.0,
+                           gripper=clearance_gripper(HAND_CLEARANCE_M)) != []  # the last 3 cm are clear
+    assert grasps_clear_at_target([grasp], target, shelf, down, 0.0) == []

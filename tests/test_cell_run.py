@@ -178,6 +178,10 @@ def bad_inputs(tmp: Path, chair: Path) -> dict[str, tuple[list[str], str]]:
     tall = _parts_folder(tmp / "tall", {"pole": trimesh.creation.box([0.05, 0.05, 0.1])})
     cases["target out of reach"] = (["--parts", str(tall), "--poses", str(_poses(tmp / "far", [
         _pose_entry("pole", position=(0.0, 0.0, 1.6))]))], "out of the Panda's reach")
+    (tmp / "heavy").mkdir()
+    top = _parts_folder(tmp / "heavy", {"top": trimesh.creation.box([0.8, 0.5, 0.02])})  # 8 litres: 4.8 kg of wood
+    cases["part over the payload"] = (["--parts", str(top), "--poses", str(_poses(tmp / "heavy", [
+        _pose_entry("top", position=(0.0, 0.0, 0.01))]))], "weighs 4.8 kg")
     cube = trimesh.creation.box([0.1, 0.1, 0.1])
     sunk = _parts_folder(tmp / "sunk", {"a": cube, "b": cube})
     cases["parts sunk into each other"] = (["--parts", str(sunk), "--poses", str(_poses(tmp / "sunk", [
@@ -189,7 +193,7 @@ def bad_inputs(tmp: Path, chair: Path) -> dict[str, tuple[list[str], str]]:
 CASES = ["missing image", "unreadable image", "grayscale image", "RGBA image", "non-square image", "huge image",
          "missing parts folder", "empty parts folder", "non-mesh file", "corrupt mesh", "empty mesh",
          "degenerate mesh", "more than 20 parts", "parts in millimetres", "NaN pose", "non-unit quaternion",
-         "missing pose", "extra pose", "target out of reach", "parts sunk into each other"]
+         "missing pose", "extra pose", "target out of reach", "part over the payload", "parts sunk into each other"]
 
 
 @pytest.mark.parametrize("case", CASES)
