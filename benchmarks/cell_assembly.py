@@ -4,9 +4,9 @@
 
 Each object runs through the whole command (sequence, kitting, motion, timing, simulation, export) in its own
 process, exactly as a user runs it (``--no-animation``, seed 0). Procedural objects are ``perception.synth``
-level-3 objects ``default_rng([2000, i])`` (seeds never used for training). A real object whose parts do not fit
-the cell (kitting area, reach, or a part heavier than the Panda's rated 3 kg payload) is scaled down by 0.8 and
-then 0.6 and run again (a part's mass goes with the cube of the scale); the scale used is reported.
+level-3 objects ``default_rng([2000, i])`` (seeds never used for training). An object, procedural or real, whose
+parts do not fit the cell (kitting area, reach, or a part heavier than the Panda's rated 3 kg payload) is scaled
+down by 0.8 and then 0.6 and run again (a part's mass goes with the cube of the scale); the scale used is reported.
 Prints a Markdown table (success rate, median errors, plan and simulation times) and names every failure with
 its stage and reason. Targets (issue 5): 100% procedural, >= 90% real, final errors <= 5 mm and <= 3 degrees.
 ``--keep DIR`` keeps every object's output folder (``DIR/<object>_out``: report, overview, program) for diagnosis;
@@ -120,11 +120,11 @@ def main() -> int:
             records = []
             for i in args.only or range(args.procedural):
                 assembly = generate(category, "3", np.random.default_rng([2000, i]), f"{category}_{i}")
-                records.append(run_one(assembly, work, args.keep))
+                records.append(run_scaled(assembly, work, args.keep))
                 everything[category] = records
                 save(args.json, everything)
                 r = records[-1]
-                print(f"{category} {i}: exit {r['exit_code']} {r['wall_s']:.0f} s "
+                print(f"{category} {i}: exit {r['exit_code']} scale {r['scale']} {r['wall_s']:.0f} s "
                       f"{(r.get('failure') or {}).get('message', '')[:160]}", flush=True)
             rows.append(table(f"{category} (level 3)", records))
         if args.furniture:

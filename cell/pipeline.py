@@ -62,7 +62,7 @@ class Pipeline:
             self.entries[part.name]["target_world_from_part"] = pose_json(
                 self.scene.fixture.world_from_assembly @ part.assembly_from_part)
         from cell.plan import out_of_reach, too_heavy
-        from planning.payload import DEFAULT_DENSITY_KG_M3, PANDA_PAYLOAD_KG
+        from planning.payload import DEFAULT_DENSITY_KG_M3
 
         far = out_of_reach(self.scene, assembly)
         if far:
@@ -70,13 +70,15 @@ class Pipeline:
             raise BadInput(f"part {name!r}: its target on the jig is {distance:.2f} m from the robot's shoulder, out "
                            f"of the Panda's reach; scale the object down (--units) or move the jig "
                            f"([fixture] world_from_assembly in the scene file)")
-        heavy = too_heavy(assembly)
+        payload_kg = self.scene.robot.payload_kg
+        heavy = too_heavy(assembly, payload_kg)
         if heavy:
             name, kg = heavy[0]
             others = f" (and {len(heavy) - 1} more)" if len(heavy) > 1 else ""
             raise BadInput(f"part {name!r}{others}: it weighs {kg:.1f} kg ({kg / DEFAULT_DENSITY_KG_M3 * 1000:.1f} "
                            f"litres of wood at {DEFAULT_DENSITY_KG_M3:.0f} kg/m3), more than the Panda's rated "
-                           f"payload of {PANDA_PAYLOAD_KG:.0f} kg; scale the object down or split the part")
+                           f"payload of {payload_kg:g} kg ([robot] payload_kg in the scene file); scale the object "
+                           f"down or split the part")
         self.target = assembly
 
     def _predict(self) -> dict[str, Pose]:

@@ -11,6 +11,7 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+from planning.payload import PANDA_PAYLOAD_KG
 from planning.pose import Pose
 from scenes import scenes_root
 
@@ -26,6 +27,7 @@ class RobotConfig:
     urdf: str
     world_from_base: Pose
     home_q: tuple[float, ...]
+    payload_kg: float = PANDA_PAYLOAD_KG  # the heaviest part the arm may carry
 
 
 @dataclass(frozen=True)
@@ -141,7 +143,9 @@ def load_scene(path: str | Path | None = None) -> Scene:
     width = r.number("camera", "width_px", positive=True)
     height = r.number("camera", "height_px", positive=True)
     return Scene(
-        robot=RobotConfig(urdf, r.pose("robot", "world_from_base"), r.numbers("robot", "home_q", 7)),
+        robot=RobotConfig(urdf, r.pose("robot", "world_from_base"), r.numbers("robot", "home_q", 7),
+                          r.number("robot", "payload_kg", positive=True) if "payload_kg" in r.section("robot")
+                          else PANDA_PAYLOAD_KG),
         table=TableConfig(r.number("table", "top_z"), r.numbers("table", "size", 3),
                           r.numbers("table", "centre_xy", 2)),
         fixture=FixtureConfig(r.pose("fixture", "world_from_assembly")),

@@ -32,6 +32,13 @@ def test_bad_scene_values_are_named(tmp_path):
                                  "world_from_base = { position = [0.0, 0.0, 0.0], quat_wxyz = [2.0, 0.0, 0.0, 0.0] }"))
     with pytest.raises(SceneError, match=r"\[robot\] world_from_base: quaternion .* norm 2"):
         load_scene(path)
+    path.write_text(good.replace("payload_kg = 3.0", "payload_kg = -1"))
+    with pytest.raises(SceneError, match=r"\[robot\] payload_kg must be positive, got -1"):
+        load_scene(path)
+    path.write_text(good.replace("payload_kg = 3.0", "payload_kg = 5.0"))
+    assert load_scene(path).robot.payload_kg == 5.0
+    path.write_text(good.replace("payload_kg = 3.0\n", ""))  # older scene files: the rated payload
+    assert load_scene(path).robot.payload_kg == 3.0
     path.write_text("not = [toml")
     with pytest.raises(SceneError, match="not valid TOML"):
         load_scene(path)
