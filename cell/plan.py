@@ -116,8 +116,8 @@ def grasps_clear_at_target(grasps: list[Grasp], world_from_target: Pose, obstacl
     """Of ``grasps``, those whose hand (grown by :data:`HAND_CLEARANCE_M`) clears the ``obstacles`` ((mesh,
     world_from_mesh) pairs: the parts placed before, the jig's pads) and the table top at ``floor_z`` with the part
     at its target and along the whole straight insertion of :data:`INSERTION_M` along ``insertion_world`` that the
-    arm makes (checked along its last 3 cm only, a finger of bookcase_expedit_0373 met a shelf higher up), ranked for
-    the target, best first."""
+    arm makes (with only its last 3 cm checked, as the sequence planner does, a finger of bookcase_expedit_0373 met a
+    shelf higher up), ranked for the target, best first."""
     return feasible_grasps(grasps, world_from_target, obstacles, insertion_world, floor_z=floor_z,
                            insertion_sweep_m=INSERTION_M, gripper=clearance_gripper(HAND_CLEARANCE_M))
 
