@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 from planning.assembly import read_assembly
-from planning.grasp import Grasp, feasible_grasps
+from planning.grasp import APPROACH_M, Grasp, feasible_grasps
 from planning.kitting import (
     HAND,
     HAND_CLEARANCE_M,
@@ -160,6 +160,21 @@ def test_closing_fingertips_are_checked_against_the_pedestal():
     open_only = feasible_grasps([grasp], world_from_bar, pedestal(0.02), None, floor_z=0.0, gripper=HAND)
     assert len(open_only) == 1  # the opened hand alone does not show it
     assert len(clear_at_pick([grasp], world_from_bar, pedestal(0.008), 0.0, HAND)) == 1
+
+
+def test_the_approach_to_the_pick_clears_the_support():
+    """The arm's motion does not check the hand against the part's own support: the check at the pick covers the
+    whole straight approach. A plate 4 cm above the hand of a top-down grasp, clear of it at the grasp, is met on
+    the way down; the check at the pose alone keeps the grasp."""
+    world_from_bar = Pose(np.array([0.5, 0.0, 0.13]), np.array([1.0, 0.0, 0.0, 0.0]))
+    down = Pose.from_rotation(np.array([[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]]), np.array([0.0, 0.0,
+                                                                                                         0.005]))
+    grasp = Grasp(down, width_m=0.02, opening_m=0.03, score=1.0, centroid_score=1.0, contact_score=1.0)
+    hand_top_z = HAND.vertices(world_from_bar @ grasp.part_from_tcp, grasp.opening_m)[:, 2].max()
+    plate = [(trimesh.creation.box(extents=(0.3, 0.3, 0.005)),
+              Pose(np.array([0.5, 0.0, hand_top_z + 0.04 + 0.0025]), np.array([1.0, 0.0, 0.0, 0.0])))]
+    assert len(clear_at_pick([grasp], world_from_bar, plate, 0.0, HAND)) == 1
+    assert clear_at_pick([grasp], world_from_bar, plate, 0.0, HAND, approach_m=APPROACH_M) == []
 
 
 def test_a_grasp_keeps_more_clearance_from_other_slots_than_from_its_own_pedestal():
