@@ -259,6 +259,7 @@ class GripperCollisionModel:
         )
         self._piece_vertices = (g.hand_vertices, g.finger_vertices, g.finger_vertices)
         self._right_rotation = _rot_z(g.right_finger_yaw_rad)
+        self._swept: dict[float, GripperCollisionModel] = {}  # distance -> swept_back(distance), built once
 
     # --- poses of the pieces ------------------------------------------------------------------------------
     def tcp_from_pieces(self, opening_m: float) -> np.ndarray:
@@ -298,15 +299,19 @@ class GripperCollisionModel:
         what the hand and fingers pass through on a straight approach of that length ending at the pose it is
         checked at, or on the retreat starting there, at a fixed opening. Each swept piece is the convex hull of
         the piece and its copy shifted back (a convex piece swept along a line stays convex), so one check of a
-        pose covers the whole straight line, with no gap between samples."""
+        pose covers the whole straight line, with no gap between samples. Built once per distance and kept (the
+        same model serves every part, and caches keyed on the model, such as the grasp probes', keep working)."""
         if not np.isfinite(distance_m) or distance_m < 0.0:
             raise ValueError(f"distance_m must be a finite length >= 0, got {distance_m}")
-        g = self.geometry
-        hand = _swept_hull(g.hand_vertices, distance_m)
-        finger = _swept_hull(g.finger_vertices, distance_m)
-        return GripperCollisionModel(dataclasses.replace(
-            g, hand_vertices=hand.vertices, hand_faces=hand.faces, finger_vertices=finger.vertices,
-            finger_faces=finger.faces))
+        distance_m = float(distance_m)
+        if distance_m not in self._swept:
+            g = self.geometry
+            hand = _swept_hull(g.hand_vertices, distance_m)
+            finger = _swept_hull(g.finger_vertices, distance_m)
+            self._swept[distance_m] = GripperCollisionModel(dataclasses.replace(
+                g, hand_vertices=hand.vertices, hand_faces=hand.faces, finger_vertices=finger.vertices,
+                finger_faces=finger.faces))
+        return self._swept[distance_m]
 
     def collides(
         self,
