@@ -36,6 +36,7 @@ class Pipeline:
         self.args, self.console, self.report = args, console, report
         self.target: Assembly | None = None
         self.plan = None
+        self.world_from_target: Pose | None = None  # the target's assembly frame on the jig, once planned
         self.simulation = None
         self.samples = None
         self.entries = {name: {"name": name, "order": None} for name in parts.names}
@@ -133,12 +134,38 @@ class Pipeline:
                          fastened_to=list(step.fastened_to))
 
     def plan_and_simulate(self) -> int:
+        """Sequence, kitting, motion and timing for the target standing on the jig; where no plan builds it
+        standing (and the scene allows it, ``[fixture] upside_down``), for the target turned over
+        (:func:`planning.fixture.upside_down`); then the limit check and the simulation."""
+        from planning.fixture import upside_down
+
+        try:
+            self._plan_build(self.target, Pose([0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]))
+        except StageFailed as standing:
+            if not self.scene.fixture.upside_down:
+                raise
+            self.console.say(f"    no plan builds it standing ({standing}); building it upside down: turned over "
+                             "about its x axis on the jig, top first")
+            turned, turned_from_target = upside_down(self.target)
+            try:
+                self._plan_build(turned, turned_from_target)
+            except StageFailed as exc:
+                raise StageFailed(exc.exit_code, standing.stage, f"{standing} (also tried building it upside down: "
+                                  f"{exc.stage}: {exc})", standing.part) from exc
+        self._check_limits()
+        return self._simulate()
+
+    def _plan_build(self, build: Assembly, build_from_target: Pose) -> None:
+        """Plan ``build`` (the target as the jig holds it: ``build_from_target`` is the target's assembly frame in
+        the build's) or raise :class:`StageFailed` (exit 3)."""
         from cell.plan import PlanningFailed, plan_cell
         from planning.motion import MotionSettings
         from planning.sequence import plan_assembly_sequence
 
-        with self.console.stage("sequence", "assembly by disassembly"):
-            sequence = plan_assembly_sequence(self.target, seed=self.args.seed)
+        upside_down = not np.allclose(build_from_target.rotation, np.eye(3))
+        how = "upside down, " if upside_down else ""
+        with self.console.stage("sequence", f"{how}assembly by disassembly"):
+            sequence = plan_assembly_sequence(build, seed=self.args.seed)
         if not sequence.success:
             raise StageFailed(EXIT_PLANNING, "sequence", sequence.reason)
         self._record_sequence(sequence)
@@ -153,44 +180,51 @@ class Pipeline:
             index = ("kitting", "motion").index(name) + 4
             detail = {"kitting": "stable poses on pedestals, a grasp valid at the pick and at the target",
                       "motion": "OMPL paths, straight approaches and insertions, Ruckig timing"}[name]
-            self.console.say(f"[{index}/8] {name}: {detail}")
+            self.console.say(f"[{index}/8] {name}: {how}{detail}")
             if name == "motion":
-                bars.append(self.console.bar(len(self.target.parts), "part"))
+                bars.append(self.console.bar(len(build.parts), "part"))
 
         def progress(fraction: float) -> None:
             if bars:
                 bars[0].n = round(fraction * bars[0].total)
                 bars[0].refresh()
 
+        seconds = self.console.stage_seconds
         try:
-            self.plan = plan_cell(self.scene, self.target, sequence, seed=self.args.seed,
-                                  motion=MotionSettings(planner=self.args.planner, seed=self.args.seed),
-                                  progress=progress, on_stage=on_stage)
+            plan = plan_cell(self.scene, build, sequence, seed=self.args.seed,
+                             motion=MotionSettings(planner=self.args.planner, seed=self.args.seed),
+                             progress=progress, on_stage=on_stage)
         except PlanningFailed as exc:
-            self.console.stage_seconds.update(exc.seconds)
+            for name, value in exc.seconds.items():
+                seconds[name] = seconds.get(name, 0.0) + value
             raise StageFailed(EXIT_PLANNING, exc.stage, str(exc), exc.part) from exc
         finally:
             for bar in bars:
                 bar.close()
+        self.plan = plan
         for name in ("kitting", "motion", "timing"):
-            self.console.stage_seconds[name] = self.plan.seconds.get(name, 0.0)
-        if self.plan.sequence is not None and self.plan.sequence.order != sequence.order:
-            self._record_sequence(self.plan.sequence)
+            seconds[name] = seconds.get(name, 0.0) + plan.seconds.get(name, 0.0)
+        if plan.sequence is not None and plan.sequence.order != sequence.order:
+            self._record_sequence(plan.sequence)
             self.console.say("    order planned again with the arm checked at every target: "
-                             + " > ".join(self.plan.sequence.order))
-        self.report["world_from_assembly"] = pose_json(self.plan.world_from_assembly)
-        self.report["jig_turn_deg"] = self.plan.jig_turn_deg
-        for task in self.plan.tasks:
+                             + " > ".join(plan.sequence.order))
+        # the target's assembly frame in the world (turned over when it is built upside down)
+        self.world_from_target = plan.world_from_assembly @ build_from_target
+        self.report["world_from_assembly"] = pose_json(self.world_from_target)
+        self.report["jig_turn_deg"] = plan.jig_turn_deg
+        self.report["upside_down"] = upside_down
+        if upside_down:
+            self.report["world_from_build"] = pose_json(plan.world_from_assembly)
+        for task in plan.tasks:
             self.entries[task.part]["target_world_from_part"] = pose_json(task.world_from_target)
-        for slot in self.plan.slots:
+        for slot in plan.slots:
             self.entries[slot.part]["kitting_world_from_part"] = pose_json(slot.world_from_part)
             self.entries[slot.part]["grasp"] = {"part_from_tcp": pose_json(slot.grasp.part_from_tcp),
                                                 "width_m": slot.grasp.width_m, "opening_m": slot.grasp.opening_m}
-        self.report["trajectory_duration_s"] = self.plan.program.duration_s
-        self.console.say(f"[6/8] timing: a {self.plan.program.duration_s:.1f} s robot program, within the Panda's "
+        self.report["trajectory_duration_s"] = plan.program.duration_s
+        built = " built upside down," if upside_down else ""
+        self.console.say(f"[6/8] timing:{built} a {plan.program.duration_s:.1f} s robot program, within the Panda's "
                          "joint limits")
-        self._check_limits()
-        return self._simulate()
 
     def _check_limits(self) -> None:
         from cell.program import CSV_RATE_HZ, LimitViolation, check_limits
@@ -249,11 +283,14 @@ class Pipeline:
         if self.target is not None:
             final = None
             if self.simulation is not None:
-                assembly_from_world = self.plan.world_from_assembly.inverse()
+                assembly_from_world = self.world_from_target.inverse()
                 final = assembly_with_poses(self.target, {p.name: assembly_from_world @ p.world_from_final
                                                           for p in self.simulation.parts})
             caption = "target assembly (given)" if self.given is not None else "predicted assembly (repaired)"
-            picture = overview_image(self.image, self.target, final, seed=self.args.seed, target_caption=caption)
+            result = ("simulated result (built upside down, shown turned back)" if self.report.get("upside_down")
+                      else "simulated result")
+            picture = overview_image(self.image, self.target, final, seed=self.args.seed, target_caption=caption,
+                                     result_caption=result)
             Image.fromarray(picture).save(folder / "overview.png")
         if self.simulation is not None and self.simulation.frames:
             from cell.simulate import write_gif

@@ -18,7 +18,7 @@ import trimesh
 from cell.bullet import BulletClient
 from cell.resting import PhysicsRestCheck
 from cell.robot import IKError, IKSettings, Panda
-from cell.scene import FixtureConfig, Scene
+from cell.scene import Scene
 from cell.task import INSERTION_M, LIFT_M, CellWorld, PartTask, TaskPlan, TaskPlanningError, plan_tasks
 from planning.assembly import Assembly
 from planning.collision import ConvexPart, box_distance, world_bounds
@@ -335,7 +335,7 @@ def jig_turned(scene: Scene, turn_deg: float) -> Scene:
     half = np.radians(turn_deg) / 2
     pose = scene.fixture.world_from_assembly
     turned = Pose(pose.position, [np.cos(half), 0.0, 0.0, np.sin(half)]) @ Pose([0, 0, 0], pose.quat_wxyz)
-    return dataclasses.replace(scene, fixture=FixtureConfig(turned))
+    return dataclasses.replace(scene, fixture=dataclasses.replace(scene.fixture, world_from_assembly=turned))
 
 
 def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int = 0,

@@ -5,9 +5,11 @@
     {"success": bool, "exit_code": int, "failure": null | {"stage", "part", "message"},
      "inputs": {"image", "parts", "poses", "scene", "seed", "units"},
      "stages": {"perception": seconds, ...},
-     "trajectory_duration_s": float, "world_from_assembly": pose,
+     "trajectory_duration_s": float, "world_from_assembly": pose, "jig_turn_deg": float,
+     "upside_down": bool, "world_from_build": pose (only when upside down),
      "parts": [{"name", "order", "target_assembly_from_part", "target_world_from_part",
-                "repair": {"translation_m", "rotation_deg"}, "insertion_direction", "fastened_to",
+                "repair": {"translation_m", "rotation_deg"}, "insertion_direction" (the frame built on the jig,
+                +z up), "fastened_to",
                 "grasp": {"part_from_tcp", "width_m", "opening_m"}, "kitting_world_from_part",
                 "final_world_from_part", "position_error_m", "rotation_error_deg", "within_tolerance"}, ...],
      "simulation": {...: what cell.simulate measured (contacts, limit violations, ...)}}
@@ -72,7 +74,9 @@ def summary_table(report: dict) -> str:
     lines.append("")
     lines.append(f"stages: {stages}")
     if report.get("trajectory_duration_s"):
-        lines.append(f"robot program: {report['trajectory_duration_s']:.1f} s")
+        built = (", built upside down on the jig (insertions in its frame): turn the object over after"
+                 if report.get("upside_down") else "")
+        lines.append(f"robot program: {report['trajectory_duration_s']:.1f} s{built}")
     return "\n".join(lines)
 
 
@@ -91,7 +95,8 @@ def _direction_words(direction) -> str:
 
 
 def overview_image(image_rgb: np.ndarray | None, target: Assembly, final: Assembly | None,
-                   seed: int = 0, target_caption: str = "target assembly") -> np.ndarray:
+                   seed: int = 0, target_caption: str = "target assembly",
+                   result_caption: str = "simulated result") -> np.ndarray:
     """Input image | target assembly | simulated result (each ``OVERVIEW_PANEL_PX`` square, captioned)."""
     from PIL import Image, ImageDraw, ImageFont
 
@@ -108,7 +113,7 @@ def overview_image(image_rgb: np.ndarray | None, target: Assembly, final: Assemb
     if image_rgb is not None:
         panels.append(np.asarray(Image.fromarray(image_rgb).resize((OVERVIEW_PANEL_PX, OVERVIEW_PANEL_PX))))
         captions.append("input image")
-    for assembly, caption in ((target, target_caption), (final, "simulated result")):
+    for assembly, caption in ((target, target_caption), (final, result_caption)):
         if assembly is None:
             continue
         with AssemblyRenderer(assembly) as renderer:

@@ -39,7 +39,11 @@ class TableConfig:
 
 @dataclass(frozen=True)
 class FixtureConfig:
+    """The jig: where the assembly frame lies in the world, and whether an object that no plan builds standing may
+    be built upside down (turned over about the assembly frame's x axis, for something to turn it back after)."""
+
     world_from_assembly: Pose
+    upside_down: bool = True
 
 
 @dataclass(frozen=True)
@@ -102,6 +106,12 @@ class _Reader:
             raise SceneError(f"{self.source}: [{section}] {key} must be positive, got {value!r}")
         return float(value)
 
+    def flag(self, section: str, key: str, default: bool) -> bool:
+        value = self.section(section).get(key, default)
+        if not isinstance(value, bool):
+            raise SceneError(f"{self.source}: [{section}] {key} must be true or false, got {value!r}")
+        return value
+
     def pose(self, section: str, key: str) -> Pose:
         value = self.section(section).get(key)
         if not isinstance(value, dict):
@@ -148,7 +158,7 @@ def load_scene(path: str | Path | None = None) -> Scene:
                           else PANDA_PAYLOAD_KG),
         table=TableConfig(r.number("table", "top_z"), r.numbers("table", "size", 3),
                           r.numbers("table", "centre_xy", 2)),
-        fixture=FixtureConfig(r.pose("fixture", "world_from_assembly")),
+        fixture=FixtureConfig(r.pose("fixture", "world_from_assembly"), r.flag("fixture", "upside_down", True)),
         kitting=_kitting(r),
         camera=CameraConfig(r.numbers("camera", "eye", 3), r.numbers("camera", "target", 3),
                             r.number("camera", "fov_deg", positive=True), int(width), int(height)),

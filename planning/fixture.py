@@ -6,6 +6,11 @@ z = 0 of the assembly frame, one under each part that touches that plane, each i
 by :data:`FINGER_CLEARANCE_M` where the footprint is large enough, so that fingers can reach under a board's
 edge. The pads stand on the cell's table, :data:`PAD_HEIGHT_M` below z = 0; a part drawn a few millimetres above
 the floor (within the contact tolerance that makes the sequence fasten it there) gets a pad rising to meet it.
+
+Some objects cannot be built standing: a table whose top has its legs under both overhangs and a frame flush
+under its long edges leaves a parallel-jaw hand no edge to hold it by when it comes last, from above. Cells build
+those upside down, the top first on the jig, and turn the finished object over: :func:`upside_down` gives the
+assembly as the jig then holds it.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from planning.assembly import Assembly, AssemblyPart
 from planning.contact import tolerance_for_size_m
 from planning.pose import Pose
 
@@ -25,6 +31,25 @@ PAD_HEIGHT_M = 0.12  # the hand is about 20 cm long across its closing axis: an 
 FINGER_CLEARANCE_M = 0.03  # fingertip (1.8 cm wide pad, 1.4 cm thick) plus margin
 MIN_PAD_FRACTION = 0.4  # a pad keeps at least this fraction of each footprint dimension
 FLOOR_CONTACT_M = 0.002  # vertices this close to a part's lowest point form its footprint
+
+
+TURNED_OVER = Pose([0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0])  # half a turn about the assembly frame's x axis
+
+
+def upside_down(assembly: Assembly) -> tuple[Assembly, Pose]:
+    """``assembly`` turned over as a jig holds it built upside down: half a turn about its x axis, then moved so
+    that its new lowest point lies on z = 0 and the origin at the centre of its new footprint (the x-y box of the
+    vertices within :data:`FLOOR_CONTACT_M` of the floor: a table's top), as the assembly frame is defined
+    (:mod:`planning.assembly`). Returns the turned assembly (same meshes, same part names) and
+    ``turned_from_assembly``, the pose of the given assembly frame in the turned one."""
+    turned = [(TURNED_OVER @ part.assembly_from_part).apply(part.mesh.vertices) for part in assembly.parts]
+    lowest = min(float(points[:, 2].min()) for points in turned)
+    floor = np.concatenate([points[points[:, 2] <= lowest + FLOOR_CONTACT_M, :2] for points in turned])
+    centre = 0.5 * (floor.min(axis=0) + floor.max(axis=0))
+    turned_from_assembly = Pose([-centre[0], -centre[1], -lowest], [1.0, 0.0, 0.0, 0.0]) @ TURNED_OVER
+    parts = [AssemblyPart(part.name, part.mesh, turned_from_assembly @ part.assembly_from_part, part.mesh_file)
+             for part in assembly.parts]
+    return Assembly(assembly.name, parts, dict(assembly.metadata)), turned_from_assembly
 
 
 @dataclass(frozen=True)

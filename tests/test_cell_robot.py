@@ -39,6 +39,12 @@ def test_bad_scene_values_are_named(tmp_path):
     assert load_scene(path).robot.payload_kg == 5.0
     path.write_text(good.replace("payload_kg = 3.0\n", ""))  # older scene files: the rated payload
     assert load_scene(path).robot.payload_kg == 3.0
+    assert load_scene(path).fixture.upside_down is True
+    path.write_text(good.replace("upside_down = true", 'upside_down = "no"'))
+    with pytest.raises(SceneError, match=r"\[fixture\] upside_down must be true or false, got 'no'"):
+        load_scene(path)
+    path.write_text(good.replace("upside_down = true", "upside_down = false"))
+    assert load_scene(path).fixture.upside_down is False
     path.write_text("not = [toml")
     with pytest.raises(SceneError, match="not valid TOML"):
         load_scene(path)

@@ -273,3 +273,60 @@ def test_a_top_slides_down_between_its_sides(tmp_path):
     top = {p["name"]: p for p in report["parts"]}["top"]
     assert code == 0, report["failure"]
     assert top["position_error_m"] < 0.001 and top["rotation_error_deg"] < 0.5, top
+
+
+def _tray_folder(folder: Path) -> Path:
+    """An upturned tray: a top lying on four walls flush under its edges. Standing, the top comes last, from above,
+    and the walls leave a parallel-jaw hand no edge to hold it by."""
+    from planning.assembly import Assembly, AssemblyPart
+    from planning.pose import Pose
+
+    length, width, thick, height = 0.30, 0.20, 0.018, 0.10
+    boards = {"top": ((length, width, thick), (0.0, 0.0, height + thick / 2)),
+              "long_left": ((length, thick, height), (0.0, -(width - thick) / 2, height / 2)),
+              "long_right": ((length, thick, height), (0.0, (width - thick) / 2, height / 2)),
+              "end_front": ((thick, width - 2 * thick, height), (-(length - thick) / 2, 0.0, height / 2)),
+              "end_back": ((thick, width - 2 * thick, height), ((length - thick) / 2, 0.0, height / 2))}
+    parts = [AssemblyPart(name, trimesh.creation.box(size), Pose(centre, [1, 0, 0, 0]), f"parts/{name}.obj")
+             for name, (size, centre) in boards.items()]
+    return write_assembly(Assembly("tray", parts), folder)
+
+
+def test_an_object_that_cannot_be_built_standing_is_built_upside_down(tmp_path):
+    """The tray is built upside down, its top first on the jig, and every part ends on its target; the report
+    says so and places the target's frame turned over on the jig. With ``[fixture] upside_down = false`` in the
+    scene the same object fails at planning, and says why."""
+    from cell.scene import DEFAULT_SCENE, scenes_root
+
+    folder = _tray_folder(tmp_path / "tray")
+    out = tmp_path / "out"
+    code = main(["--parts", str(folder / "parts"), "--poses", str(folder / "assembly.json"), "--out", str(out),
+                 "--quiet", "--no-animation"])
+    report = json.loads((out / "report.json").read_text())
+    assert code == 0, report["failure"]
+    assert report["upside_down"] is True
+    order = {p["name"]: p["order"] for p in report["parts"]}
+    assert order["top"] == 1  # the top lies on the jig first, the walls stand on it
+    z_axis = _matrix(report["world_from_assembly"])[:3, 2]
+    assert z_axis[2] < -0.999  # the target's +z points down in the world
+    for part in report["parts"]:
+        assert part["within_tolerance"] and part["position_error_m"] < 0.005, part
+        target = _matrix(part["target_world_from_part"])
+        expected = _matrix(report["world_from_assembly"]) @ _matrix(part["target_assembly_from_part"])
+        assert np.allclose(target, expected, atol=1e-9)  # the world targets are the given ones, turned over
+
+    scene = tmp_path / "standing_only.toml"
+    text = (scenes_root() / DEFAULT_SCENE).read_text()
+    assert "upside_down = true" in text
+    scene.write_text(text.replace("upside_down = true", "upside_down = false"))
+    code = main(["--parts", str(folder / "parts"), "--poses", str(folder / "assembly.json"), "--scene", str(scene),
+                 "--out", str(tmp_path / "standing"), "--quiet", "--no-animation"])
+    report = json.loads((tmp_path / "standing" / "report.json").read_text())
+    assert code == 3 and report["failure"]["stage"] == "sequence" and report.get("upside_down") is None
+
+
+def _matrix(pose: dict) -> np.ndarray:
+    """A report's pose as a 4x4 matrix."""
+    from planning.pose import Pose
+
+    return Pose(pose["position"], pose["quat_wxyz"]).matrix()

@@ -3,9 +3,10 @@
 import numpy as np
 import trimesh
 
+from planning.assembly import Assembly, AssemblyPart
 from planning.collision import ConvexPart
 from planning.contact import FLOOR, contact_graph
-from planning.fixture import FINGER_CLEARANCE_M, PAD_HEIGHT_M, fixture_pads
+from planning.fixture import FINGER_CLEARANCE_M, PAD_HEIGHT_M, fixture_pads, upside_down
 from planning.pose import Pose
 
 
@@ -60,3 +61,33 @@ def test_a_frame_stands_on_a_box_under_each_foot_and_a_side_on_its_bottom_board_
     for leg, box in zip(sorted(legs, key=lambda m: m.bounds[0][1]), sorted(corners, key=lambda c: c[:, 1].min())):
         assert np.all(box[:, :2].min(axis=0) >= leg.bounds[0][:2] - 1e-9)  # under the leg
         assert np.all(box[:, :2].max(axis=0) <= leg.bounds[1][:2] + 1e-9)
+
+
+def _tray():
+    """A top lying on four walls flush under its edges (an upturned tray), metres."""
+    length, width, thick, height = 0.30, 0.20, 0.018, 0.10
+    boards = {"top": ((length, width, thick), (0.0, 0.0, height + thick / 2)),
+              "long_left": ((length, thick, height), (0.0, -(width - thick) / 2, height / 2)),
+              "long_right": ((length, thick, height), (0.0, (width - thick) / 2, height / 2)),
+              "end_front": ((thick, width - 2 * thick, height), (-(length - thick) / 2, 0.0, height / 2)),
+              "end_back": ((thick, width - 2 * thick, height), ((length - thick) / 2, 0.0, height / 2))}
+    return Assembly("tray", [AssemblyPart(name, trimesh.creation.box(size), Pose(centre, [1, 0, 0, 0]))
+                             for name, (size, centre) in boards.items()])
+
+
+def test_upside_down_turns_the_assembly_over_with_its_top_on_the_floor():
+    tray = _tray()
+    tray.parts[0] = AssemblyPart("top", tray.parts[0].mesh, Pose([0.02, 0.01, 0.109], [1, 0, 0, 0]))  # off centre
+    turned, turned_from_tray = upside_down(tray)
+    assert np.allclose(turned_from_tray.rotation, np.diag([1.0, -1.0, -1.0]))
+    meshes = dict(zip(turned.part_names, turned.meshes_in_assembly_frame()))
+    top = meshes["top"].bounds
+    assert abs(top[0, 2]) < 1e-9  # the top lies on the floor
+    assert np.allclose(0.5 * (top[0, :2] + top[1, :2]), 0.0)  # the origin at the middle of its footprint
+    for name in ("long_left", "long_right", "end_front", "end_back"):  # the walls stand on it, reaching up
+        assert abs(meshes[name].bounds[0, 2] - 0.018) < 1e-9 and abs(meshes[name].bounds[1, 2] - 0.118) < 1e-9
+    assert np.allclose(meshes["long_left"].bounds[:, 1], [0.092, 0.110])  # -y turned over about x, the top centred
+    for before, after in zip(tray.parts, turned.parts):  # same meshes, each part where the turn puts it
+        assert after.mesh is before.mesh and after.name == before.name
+        assert np.allclose(after.assembly_from_part.matrix(),
+                           (turned_from_tray @ before.assembly_from_part).matrix())
