@@ -332,7 +332,7 @@ class OurPlanner:
     def __init__(self, scene: Scene, lower: np.ndarray, upper: np.ndarray, time_limit_s: float, seed: int) -> None:
         self.checker = RobotCollisionChecker(scene.robot.world_from_base.matrix(), {})
         self.lower, self.upper = lower, upper
-        self.settings = MotionSettings(time_limit_s=time_limit_s, seed=seed)
+        self.settings = MotionSettings(time_limit_s=time_limit_s, seed=seed, searches=1)  # one call, as MPlib's
 
     def set_world(self, obstacles, held, opening_m: float) -> None:
         self.checker.set_obstacles(obstacles)

@@ -173,14 +173,15 @@ class Pipeline:
 
         bars = []
 
-        def on_stage(name: str) -> None:
+        def on_stage(name: str, jig_turn_deg: float) -> None:
             for bar in bars:
                 bar.close()
             bars.clear()
             index = ("kitting", "motion").index(name) + 4
             detail = {"kitting": "stable poses on pedestals, a grasp valid at the pick and at the target",
                       "motion": "OMPL paths, straight approaches and insertions, Ruckig timing"}[name]
-            self.console.say(f"[{index}/8] {name}: {how}{detail}")
+            turned = f"jig turned {jig_turn_deg:.0f} deg, " if jig_turn_deg else ""
+            self.console.say(f"[{index}/8] {name}: {how}{turned}{detail}")
             if name == "motion":
                 bars.append(self.console.bar(len(build.parts), "part"))
 

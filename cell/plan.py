@@ -342,9 +342,10 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
               motion: MotionSettings | None = None, progress=None, on_stage=None,
               time_budget_s: float = DEFAULT_TIME_BUDGET_S) -> CellPlan:
     """Kitting layout, pick-and-place tasks and the timed program for ``assembly`` in ``scene``; raises
-    :class:`PlanningFailed` naming the stage and the part. ``on_stage(name)`` is called as the kitting and the
-    motion stages begin; ``progress(fraction)`` after each part's motions are planned. ``CellPlan.seconds``
-    holds the time of kitting, motion (OMPL, IK, checks) and timing (Ruckig, with its collision re-check).
+    :class:`PlanningFailed` naming the stage and the part. ``on_stage(name, jig_turn_deg)`` is called as the
+    kitting and the motion stages begin (for each turn of the jig tried); ``progress(fraction)`` after each part's
+    motions are planned. ``CellPlan.seconds`` holds the time of kitting, motion (OMPL, IK, checks) and timing
+    (Ruckig, with its collision re-check).
 
     Where kitting or motion fail with the jig as the scene places it, the jig is turned by 90, 270 and 180
     degrees (an assembly's grasps may only be reachable from one side); ``CellPlan.world_from_assembly`` says
@@ -365,7 +366,8 @@ def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed
         if failures and time.perf_counter() > deadline:
             break
         try:
-            plan = _plan_with_jig(jig_turned(scene, turn), assembly, sequence, seed, motion, progress, on_stage,
+            stage = None if on_stage is None else (lambda name, _turn=turn: on_stage(name, _turn))
+            plan = _plan_with_jig(jig_turned(scene, turn), assembly, sequence, seed, motion, progress, stage,
                                   deadline, rests)
         except PlanningFailed as exc:
             failures.append((turn, exc))
@@ -564,7 +566,8 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
             except TaskPlanningError as exc:
                 timing_seconds += world.timing_seconds
                 failed = options.get(exc.part, [])
-                if (attempt == MOTION_RETRIES or len(failed) < 2 or exc.kind == "timeout"
+                out_of_time = exc.kind == "timeout" and exc.stage == "planning"  # the budget, not one search
+                if (attempt == MOTION_RETRIES or len(failed) < 2 or out_of_time
                         or time.perf_counter() > deadline):
                     error = PlanningFailed("motion", str(exc), exc.part)
                     error.seconds = {**seconds, "motion": time.perf_counter() - started - timing_seconds,

@@ -31,8 +31,11 @@ from planning.convex import mesh_key
 from planning.payload import MassProperties, mass_properties
 from planning.pose import Pose
 
-REST_CHECK_S = 1.5
-"""Simulated seconds the bodies are left alone (the program's first pick may come this late after settling)."""
+REST_CHECK_S = 4.0
+"""Simulated seconds the bodies are left alone. A part balanced at the edge of tipping moves slowly at first and
+then faster and faster: cabinet_akurum_0014's part_03 on its pedestal moved 0.3 mm in 1.5 s, which a check that
+short passed, and had tipped by 1 degree (2.3 mm) at 4 s; in the program it was woken 5.6 s in, kept tipping and
+was picked 30 mm off."""
 REST_MOTION_M = 0.002
 """A corner of a loose body's bounding box moving farther than this (metres) in that time: it does not rest."""
 REST_SPEED_M_S = 0.004

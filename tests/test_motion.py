@@ -1,5 +1,7 @@
 """Joint-space planning with OMPL around a real obstacle, checked with the real collision model."""
 
+import time
+
 import numpy as np
 import pytest
 import trimesh
@@ -86,3 +88,21 @@ def test_segment_check_decides_the_edges():
     assert info.value.kind == "timeout"
     path = plan_joint_path(lambda q: True, start, goal, LOWER, UPPER, MotionSettings(time_limit_s=0.3))
     assert len(path) == 2  # without it the straight line is taken
+
+
+def test_a_query_with_no_path_is_searched_again_before_it_fails():
+    """A failed search is followed by a fresh one (new random trees) up to ``MotionSettings.searches`` times; the
+    error says how many ran. The query has no path: no edge may cross joint 1 = 0."""
+    start, goal = np.zeros(7), np.zeros(7)
+    start[0], goal[0] = -0.5, 0.5
+
+    def segment_valid(q_from, q_to):
+        return bool(np.sign(q_from[0]) == np.sign(q_to[0]))
+
+    for searches, words in ((2, "found no path within 0.2 s in each of 2 searches"), (1, "found no path within 0.2 s")):
+        started = time.perf_counter()
+        with pytest.raises(MotionPlanningError) as info:
+            plan_joint_path(lambda q: True, start, goal, LOWER, UPPER,
+                            MotionSettings(time_limit_s=0.2, searches=searches), segment_valid=segment_valid)
+        assert info.value.kind == "timeout" and str(info.value).endswith(words)
+        assert time.perf_counter() - started >= 0.2 * searches  # each search ran out its time
