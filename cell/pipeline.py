@@ -147,9 +147,13 @@ class Pipeline:
             self.console.say(f"    no plan builds it standing ({standing}); building it upside down: turned over "
                              "about its x axis on the jig, top first")
             turned, turned_from_target = upside_down(self.target)
+            records = {name: dict(entry) for name, entry in self.entries.items()}
             try:
                 self._plan_build(turned, turned_from_target)
             except StageFailed as exc:
+                for name, entry in self.entries.items():  # the report keeps the standing build's order
+                    entry.clear()
+                    entry.update(records[name])
                 raise StageFailed(exc.exit_code, standing.stage, f"{standing} (also tried building it upside down: "
                                   f"{exc.stage}: {exc})", standing.part) from exc
         self._check_limits()

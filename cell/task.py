@@ -238,7 +238,8 @@ class CellWorld:
         into contact only at the end of its insertion (:func:`_insertion`), as a guarded move would. A neighbour
         counts when the part passes within :data:`SLIDE_CLEARANCE_M` of it anywhere along the insertion (checked
         at :data:`SLIDE_SAMPLES` poses from the pre-place pose to the target) with a contact normal within
-        :data:`SIDE_NORMAL_MAX_COS` of perpendicular to the insertion (what the part lands on does not count).
+        :data:`SIDE_NORMAL_MAX_COS` of perpendicular to the insertion (what the part lands on does not count; the
+        jig's pad it is slid sideways over does, and the parts it is fitted into at its target do not).
         Sliding down a neighbour's face 0.25 mm off it, the simulated part caught on its edge and twisted in the
         hand by 18-65 degrees (chairs' side stretchers against the middle stretcher they butt onto). Neighbours on
         opposite sides (a slot) cancel: the part then comes straight down the middle. No offset where the part held
@@ -248,12 +249,19 @@ class CellWorld:
         direction = task.insertion_direction
         samples = [Pose(task.world_from_target.position - direction * INSERTION_M * fraction,
                         task.world_from_target.quat_wxyz) for fraction in np.linspace(1.0, 0.0, SLIDE_SAMPLES)]
+        fitted = self._fitted(part, task.world_from_target)
+        # the placed parts, and the jig's pads the part lands on: slid sideways over its pad (chair_ivar_0668's
+        # side pushed onto the seat's tenons), a part comes in held above it and is set down at the end
+        neighbours = {n: (convex, pose) for n, (convex, pose) in self.static.items()
+                      if n.startswith("pad ") and n in task.touches_at_target}
+        neighbours.update((n, (self.parts[n], pose)) for n, pose in self.part_poses.items()
+                          if n != part and n not in fitted)
         away, seen = np.zeros(3), set()
         for pose in samples:
-            for other, other_pose in self.part_poses.items():
-                if other == part or other in seen:
+            for other, (other_convex, other_pose) in neighbours.items():
+                if other in seen:
                     continue
-                result = signed_distance(self.parts[other], other_pose, self.parts[part], pose,
+                result = signed_distance(other_convex, other_pose, self.parts[part], pose,
                                          cutoff_m=SLIDE_CLEARANCE_M)
                 if not (result.measured and result.distance_m < SLIDE_CLEARANCE_M and result.normal_ab is not None):
                     continue
@@ -267,16 +275,30 @@ class CellWorld:
         if norm <= 1e-6:
             return np.zeros(3)
         shift = away / norm * SLIDE_CLEARANCE_M
-        return np.zeros(3) if self._held_off_blocked(part, samples, shift) else shift
+        return np.zeros(3) if self._held_off_blocked(part, samples, shift, fitted) else shift
 
-    def _held_off_blocked(self, part: str, samples: Sequence[Pose], shift_m: np.ndarray) -> bool:
+    def _fitted(self, part: str, world_from_target: Pose) -> set[str]:
+        """The placed parts that ``part`` overlaps at its target by more than :data:`HELD_OFF_TOLERANCE_M` (a
+        tenon drawn into its neighbour): the simulation lets them fit, without contact between them, from its
+        insertion on, so they neither guide nor block it."""
+        fitted = set()
+        for other, other_pose in self.part_poses.items():
+            if other == part:
+                continue
+            result = signed_distance(self.parts[other], other_pose, self.parts[part], world_from_target, cutoff_m=0.0)
+            if result.measured and result.distance_m < -HELD_OFF_TOLERANCE_M:
+                fitted.add(other)
+        return fitted
+
+    def _held_off_blocked(self, part: str, samples: Sequence[Pose], shift_m: np.ndarray,
+                          fitted: set[str] = frozenset()) -> bool:
         """Whether ``part`` at any of the insertion poses ``samples``, moved by ``shift_m`` (world, m), sinks more
         than :data:`HELD_OFF_TOLERANCE_M` into a placed part (one it lands on included: shifted across a slanted
-        face it would sink into it)."""
+        face it would sink into it) other than those it is ``fitted`` into at its target."""
         for pose in samples:
             shifted = Pose(pose.position + shift_m, pose.quat_wxyz)
             for other, other_pose in self.part_poses.items():
-                if other == part:
+                if other == part or other in fitted:
                     continue
                 result = signed_distance(self.parts[other], other_pose, self.parts[part], shifted, cutoff_m=0.0)
                 if result.measured and result.distance_m < -HELD_OFF_TOLERANCE_M:

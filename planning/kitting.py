@@ -55,6 +55,8 @@ NEIGHBOUR_REACH_M = 0.25  # parts whose footprints are farther apart than this c
 MAX_PLACES_PER_POSE = 40  # places tried (with grasp checks) for one stable pose before the next pose
 RADIAL_STEP_M = 0.03
 PLACE_SPACING_M = 0.08  # after a place fails, places nearer to it than this are skipped (spread the tries)
+HALF_TURN_SAMPLES = 200  # surface samples that decide whether a part lying in a pose looks the same turned half a
+HALF_TURN_TOLERANCE_M = 0.001  # turn about the vertical (then its kitting places are not tried turned too)
 BOARD_THICKNESS_RATIO = 0.25  # a part thinner than this fraction of its middle extent is a board: it may stack
 STACK_OVERHANG_M = 0.04  # a stacked board overhangs the one under it by this much on one side (for the fingers)
 STACK_SUPPORT_M = 0.02  # ... and keeps its centre at least this far inside the lower board's edge
@@ -585,6 +587,7 @@ class _Layout:
         self.usable_at_target: dict[tuple, bool] = {}
         self.places_cache: dict[tuple, list] = {}
         self.support_cache: dict[tuple, Pedestal | None] = {}
+        self.half_turn_cache: dict[tuple, bool] = {}  # (part, rest pose) -> the same turned half a turn
         self.rests = None  # physics check (loose bodies, fixed bodies) -> bool, see plan_kitting
         self.settles = None  # physics (loose bodies, fixed bodies) -> where they come to rest, see plan_kitting
         self.unrested: set[str] = set()  # parts with no pose that rests on a pedestal
@@ -624,15 +627,15 @@ class _Layout:
                     rest_from_part = self._free_fingers(name, rest_from_part, grasps, grasp_ok_at_target)
                 places = (self._stack_places(name, rest_from_part) if attempt == "stack"
                           else self._ground_places(name, rest_from_part))
-                tried, failed_xy = 0, []
+                tried, failed = 0, []  # (centre_xy, heading of the rest frame's x axis) of the places that failed
                 for world_from_rest, corners, pedestal, base in places:
-                    xy = world_from_rest.position[:2]
-                    if any(np.linalg.norm(xy - f) < PLACE_SPACING_M for f in failed_xy):
-                        continue  # next to a place that failed: most likely fails for the same reason
+                    xy, heading = world_from_rest.position[:2], world_from_rest.rotation[:2, 0]
+                    if any(np.linalg.norm(xy - f) < PLACE_SPACING_M and heading @ h > 0.0 for f, h in failed):
+                        continue  # next to a place that failed, turned alike: most likely fails for the same reason
                     tried += 1
                     if tried > MAX_PLACES_PER_POSE:
                         break
-                    failed_xy.append(xy)
+                    failed.append((xy, heading))
                     found = self._try(name, mesh, grasps, grasp_ok_at_target, world_from_rest @ Pose.from_matrix(
                         rest_from_part), corners, pedestal, base, probability)
                     if found is not None:
@@ -784,10 +787,28 @@ class _Layout:
             if skip:
                 continue
             yaw = long_yaw if long_is_x else long_yaw - np.pi / 2  # the rest frame's long axis along long_yaw
-            world_from_rest = Pose([xy[0], xy[1], self.area.table_z_m + self.area.pedestal_height_m],
-                                   [1, 0, 0, 0]) @ _yaw(yaw)
-            pedestal = dataclasses.replace(at_rest, world_from_pedestal=world_from_rest @ at_rest.world_from_pedestal)
-            yield world_from_rest, _corners(xy, long_yaw, half_ring), pedestal, None
+            # and turned half a turn on the same footprint: the other edge faces the robot (chair_ivar_0668's side
+            # lying flat is held at the target by an edge that faced away from the arm in every place)
+            for turn in (0.0, np.pi) if not self._half_turn_alike(name, rest_from_part) else (0.0,):
+                world_from_rest = Pose([xy[0], xy[1], self.area.table_z_m + self.area.pedestal_height_m],
+                                       [1, 0, 0, 0]) @ _yaw(yaw + turn)
+                pedestal = dataclasses.replace(at_rest,
+                                               world_from_pedestal=world_from_rest @ at_rest.world_from_pedestal)
+                yield world_from_rest, _corners(xy, long_yaw, half_ring), pedestal, None
+
+    def _half_turn_alike(self, name: str, rest_from_part: np.ndarray) -> bool:
+        """Whether the part lying in this rest pose looks the same turned half a turn about the vertical through
+        its footprint's centre (surface samples land within :data:`HALF_TURN_TOLERANCE_M` of its surface): then
+        the turned place is the same place."""
+        key = (name, np.round(rest_from_part, 9).tobytes())
+        if key not in self.half_turn_cache:
+            mesh = self.meshes[name]
+            points, _ = trimesh.sample.sample_surface(mesh, HALF_TURN_SAMPLES, seed=0)
+            rest = Pose.from_matrix(rest_from_part)
+            turned = rest.inverse() @ Pose([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]) @ rest
+            _, distance, _ = trimesh.proximity.closest_point(mesh, turned.apply(points))
+            self.half_turn_cache[key] = bool(np.max(distance) <= HALF_TURN_TOLERANCE_M)
+        return self.half_turn_cache[key]
 
     def _stack_places(self, name: str, rest_from_part: np.ndarray):
         """On top of a board assembled later whose top is flat and free, overhanging it on one side by

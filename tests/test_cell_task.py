@@ -113,6 +113,26 @@ def test_a_part_is_not_held_off_into_another_neighbour(panda):
         [-SLIDE_CLEARANCE_M, 0.0, 0.0], abs=1e-9)
 
 
+def test_a_side_slid_sideways_over_its_pad_onto_tenons_comes_in_held_above_the_pad(panda):
+    """A chair's side panel pushed sideways (-x) onto its pad and onto a rail whose end is drawn 9 mm into it (a
+    tenon, which the simulation lets fit): it comes in held 4 mm above the pad and is set down at the end. The
+    tenon neither guides it nor blocks the offset; without the pad among the neighbours it would slide along it."""
+    side = trimesh.creation.box((0.019, 0.276, 0.3))
+    rail = trimesh.creation.box((0.2, 0.03, 0.03))
+    pad = trimesh.creation.box((0.01, 0.2, 0.12))
+    target = Pose([0.5, 0.0, 0.15], [1, 0, 0, 0])
+    parts = {"side": ConvexPart.from_mesh("side", side), "rail": ConvexPart.from_mesh("rail", rail)}
+    static = {"pad side": (ConvexPart.from_mesh("pad side", pad), Pose([0.5, 0.0, -0.06], [1, 0, 0, 0]))}
+    world = CellWorld(panda, Pose.identity(), static, parts, np.random.default_rng(0))
+    world.set_part_poses({"rail": Pose([0.5 - 0.0095 - 0.1 + 0.009, 0.0, 0.2], [1, 0, 0, 0])})  # 9 mm into it
+    grasp = Grasp(Pose.identity(), width_m=0.019, opening_m=0.03, score=1.0, centroid_score=1.0, contact_score=1.0)
+    task = PartTask("side", Pose([0.3, 0.3, 0.1], [1, 0, 0, 0]), target, grasp, np.array([-1.0, 0.0, 0.0]),
+                    ("rail", "pad side"), "pedestal")
+    assert world.clearance_shift("side", task) == pytest.approx([0.0, 0.0, SLIDE_CLEARANCE_M], abs=1e-9)
+    other_pad = PartTask("side", task.world_from_pick, target, grasp, task.insertion_direction, ("rail",), "pedestal")
+    assert np.all(world.clearance_shift("side", other_pad) == 0.0)  # only the pads it lands on count
+
+
 def test_insertions_are_timed_slowly_enough_for_tight_fits(panda):
     world = world_with(panda, {})
     down = Pose([0.5, 0.0, 0.25], [0.0, 1.0, 0.0, 0.0])  # TCP pointing down

@@ -14,6 +14,7 @@ from planning.kitting import (
     TOO_LARGE,
     KittingArea,
     KittingError,
+    Reach,
     _pickable,
     _polygons_overlap,
     clear_at_pick,
@@ -283,3 +284,28 @@ def test_a_part_whose_arm_sweeps_the_places_larger_parts_took_is_laid_out_first(
         assert slot.world_from_part.apply(meshes[names.index(slot.part)].vertices)[:, 1].min() >= -0.3
         if slot.pedestal is not None:
             assert slot.pedestal.world_from_pedestal.apply(slot.pedestal.mesh().vertices)[:, 1].min() >= -0.3
+
+
+
+def test_an_asymmetric_board_is_also_tried_turned_half_a_turn_on_each_place():
+    """Each place in the ring is offered with the board as laid and turned half a turn on the same footprint
+    (another edge faces the arm: chair_ivar_0668's side is held at its target by an edge that faced away from the
+    arm in every place); a board that looks the same turned is offered once."""
+    from planning.kitting import _Layout
+
+    tab = trimesh.util.concatenate([trimesh.creation.box((0.30, 0.16, 0.02)), trimesh.creation.box(
+        (0.08, 0.04, 0.02), transform=trimesh.transformations.translation_matrix((0.08, 0.10, 0.0)))])
+    plain = trimesh.creation.box((0.30, 0.16, 0.02))
+    layout = _Layout(["tab", "plain"], {"tab": tab, "plain": plain}, AREA, np.array([0.5, 0.0]), Reach())
+    for name, mesh, turns in (("tab", tab, 2), ("plain", plain, 1)):
+        rest_from_part = stable_rest_poses(mesh)[0][0]
+        places = list(layout._ground_places(name, rest_from_part))
+        assert len(places) % turns == 0 and len(places) >= 10 * turns
+        for k in range(0, 10 * turns, turns):  # consecutive offers share the place, headings opposite
+            group = places[k:k + turns]
+            assert all(np.allclose(p[0].position, group[0][0].position) for p in group)
+            assert all(np.allclose(p[1], group[0][1]) for p in group)  # the same footprint
+            if turns == 2:
+                np.testing.assert_allclose(group[1][0].rotation[:, 0], -group[0][0].rotation[:, 0], atol=1e-9)
+                np.testing.assert_allclose(group[1][2].world_from_pedestal.position,
+                                           group[0][2].world_from_pedestal.position, atol=1e-9)
