@@ -32,7 +32,7 @@ Failures raise :class:`TaskPlanningError`, naming the part, the stage and the ki
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Sequence, Set
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -291,7 +291,7 @@ class CellWorld:
         return fitted
 
     def _held_off_blocked(self, part: str, samples: Sequence[Pose], shift_m: np.ndarray,
-                          fitted: set[str] = frozenset()) -> bool:
+                          fitted: Set[str] = frozenset()) -> bool:
         """Whether ``part`` at any of the insertion poses ``samples``, moved by ``shift_m`` (world, m), sinks more
         than :data:`HELD_OFF_TOLERANCE_M` into a placed part (one it lands on included: shifted across a slanted
         face it would sink into it) other than those it is ``fitted`` into at its target."""

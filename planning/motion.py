@@ -44,8 +44,8 @@ class MotionSettings:
     check_resolution: float = 0.001
     simplify: bool = True  # shorten the path (see _simplify)
     seed: int = 0
-    # searches of time_limit_s each before a query fails: each grows new random trees (table_hemnes_0539's top,
-    # carried into a narrow gap between the arm's links and the legs, found no path in one 5 s search)
+    # searches of time_limit_s each before a query fails, each growing new random trees: one search that runs out
+    # of time through a narrow passage is no proof that there is no path
     searches: int = 2
 
 

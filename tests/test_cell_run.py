@@ -275,30 +275,13 @@ def test_a_top_slides_down_between_its_sides(tmp_path):
     assert top["position_error_m"] < 0.001 and top["rotation_error_deg"] < 0.5, top
 
 
-def _tray_folder(folder: Path) -> Path:
-    """An upturned tray: a top lying on four walls flush under its edges. Standing, the top comes last, from above,
-    and the walls leave a parallel-jaw hand no edge to hold it by."""
-    from planning.assembly import Assembly, AssemblyPart
-    from planning.pose import Pose
-
-    length, width, thick, height = 0.30, 0.20, 0.018, 0.10
-    boards = {"top": ((length, width, thick), (0.0, 0.0, height + thick / 2)),
-              "long_left": ((length, thick, height), (0.0, -(width - thick) / 2, height / 2)),
-              "long_right": ((length, thick, height), (0.0, (width - thick) / 2, height / 2)),
-              "end_front": ((thick, width - 2 * thick, height), (-(length - thick) / 2, 0.0, height / 2)),
-              "end_back": ((thick, width - 2 * thick, height), ((length - thick) / 2, 0.0, height / 2))}
-    parts = [AssemblyPart(name, trimesh.creation.box(size), Pose(centre, [1, 0, 0, 0]), f"parts/{name}.obj")
-             for name, (size, centre) in boards.items()]
-    return write_assembly(Assembly("tray", parts), folder)
-
-
-def test_an_object_that_cannot_be_built_standing_is_built_upside_down(tmp_path):
+def test_an_object_that_cannot_be_built_standing_is_built_upside_down(tray, tmp_path):
     """The tray is built upside down, its top first on the jig, and every part ends on its target; the report
     says so and places the target's frame turned over on the jig. With ``[fixture] upside_down = false`` in the
     scene the same object fails at planning, and says why."""
     from cell.scene import DEFAULT_SCENE, scenes_root
 
-    folder = _tray_folder(tmp_path / "tray")
+    folder = write_assembly(tray, tmp_path / "tray")
     out = tmp_path / "out"
     code = main(["--parts", str(folder / "parts"), "--poses", str(folder / "assembly.json"), "--out", str(out),
                  "--quiet", "--no-animation"])

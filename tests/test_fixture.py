@@ -3,7 +3,7 @@
 import numpy as np
 import trimesh
 
-from planning.assembly import Assembly, AssemblyPart
+from planning.assembly import AssemblyPart
 from planning.collision import ConvexPart
 from planning.contact import FLOOR, contact_graph
 from planning.fixture import FINGER_CLEARANCE_M, PAD_HEIGHT_M, fixture_pads, upside_down
@@ -63,20 +63,7 @@ def test_a_frame_stands_on_a_box_under_each_foot_and_a_side_on_its_bottom_board_
         assert np.all(box[:, :2].max(axis=0) <= leg.bounds[1][:2] + 1e-9)
 
 
-def _tray():
-    """A top lying on four walls flush under its edges (an upturned tray), metres."""
-    length, width, thick, height = 0.30, 0.20, 0.018, 0.10
-    boards = {"top": ((length, width, thick), (0.0, 0.0, height + thick / 2)),
-              "long_left": ((length, thick, height), (0.0, -(width - thick) / 2, height / 2)),
-              "long_right": ((length, thick, height), (0.0, (width - thick) / 2, height / 2)),
-              "end_front": ((thick, width - 2 * thick, height), (-(length - thick) / 2, 0.0, height / 2)),
-              "end_back": ((thick, width - 2 * thick, height), ((length - thick) / 2, 0.0, height / 2))}
-    return Assembly("tray", [AssemblyPart(name, trimesh.creation.box(size), Pose(centre, [1, 0, 0, 0]))
-                             for name, (size, centre) in boards.items()])
-
-
-def test_upside_down_turns_the_assembly_over_with_its_top_on_the_floor():
-    tray = _tray()
+def test_upside_down_turns_the_assembly_over_with_its_top_on_the_floor(tray):
     tray.parts[0] = AssemblyPart("top", tray.parts[0].mesh, Pose([0.02, 0.01, 0.109], [1, 0, 0, 0]))  # off centre
     turned, turned_from_tray = upside_down(tray)
     assert np.allclose(turned_from_tray.rotation, np.diag([1.0, -1.0, -1.0]))
