@@ -11,9 +11,10 @@ kit, a part falls asleep until something touches it or the arm comes to pick it
 
 The arm follows the program's samples at ``rate_hz`` (one physics step per sample) under position control with the
 Franka's joint torque limits. A gripper step that narrows the opening closes the fingers (position control,
-:attr:`SimSettings.finger_force_n` per finger); when it ends, the part it names is welded to the hand only if both
-fingers touch it, otherwise the grasp fails and is reported. The weld holds the part at the grasp the program
-plans (the TCP where the program closes, and the part where it starts) when the part lies within
+:attr:`SimSettings.finger_force_n` per finger); the part it names is welded to the hand as soon as each finger
+presses on it with :attr:`SimSettings.grip_force_n` (a real grip holds from contact on), or else when the step
+ends if both fingers touch it; otherwise the grasp fails and is reported. The weld holds the part at the grasp the
+program plans (the TCP where the program closes, and the part where it starts) when the part lies within
 :attr:`SimSettings.grasp_seat_m` of it, turned by at most ``grasp_seat_deg`` about the closing axis and
 ``grasp_square_deg`` in all: the closing fingers centre a real part and their flat pads square it, while PyBullet's
 finger contacts settle it a fraction of a millimetre and one to three degrees off (they creep under the squeeze);
@@ -136,6 +137,10 @@ class SimSettings:
     finger_force_n: float = 20.0  # per finger (the URDF's effort limit)
     finger_speed_m_s: float = 0.05  # per finger
     grasp_contact_m: float = 0.0002  # a finger this close to the part (metres, as PyBullet measures) touches it
+    # the grip holds as soon as each finger presses on the part with this much (N, the contacts' normal forces)
+    # while closing: squeezed on by PyBullet's finger hulls, a 16 g table leg standing on its pedestal turned 12
+    # degrees about the closing axis in the 0.4 s the fingers kept closing after both touched it
+    grip_force_n: float = 2.0
     grasp_seat_m: float = 0.003  # a grasped part this close to its planned grasp (and ...
     grasp_seat_deg: float = 3.0  # ... turned by less than this about the closing axis, which the pads leave free,
     grasp_square_deg: float = 8.0  # ... and less than this in all) is seated there by the closing fingers
@@ -182,7 +187,8 @@ class PartResult:
     ``grasp_offset_m`` / ``grasp_offset_deg``: how far the part lay from its planned grasp, relative to the hand,
     when the fingers closed on it (metres at the TCP, degrees; None if never grasped); ``grasp_seated``: whether it
     was held at the planned grasp (offset within :attr:`SimSettings.grasp_seat_m`, ``grasp_seat_deg`` and
-    ``grasp_square_deg``) rather than where it lay."""
+    ``grasp_square_deg``) rather than where it lay; ``gripped_at_s``: when the grip last took hold of it (program
+    clock, seconds; None if never)."""
 
     name: str
     world_from_final: Pose
@@ -196,6 +202,7 @@ class PartResult:
     grasp_offset_m: float | None = None
     grasp_offset_deg: float | None = None
     grasp_seated: bool = False
+    gripped_at_s: float | None = None
 
     def to_json(self) -> dict:
         return {"name": self.name, "world_from_final": self.world_from_final.to_dict(),
@@ -203,7 +210,8 @@ class PartResult:
                 "within_tolerance": self.within_tolerance, "grasped": self.grasped,
                 "fastened_to": list(self.fastened_to), "settle_motion_m": self.settle_motion_m,
                 "moved_after_release_m": self.moved_after_release_m, "grasp_offset_m": self.grasp_offset_m,
-                "grasp_offset_deg": self.grasp_offset_deg, "grasp_seated": self.grasp_seated}
+                "grasp_offset_deg": self.grasp_offset_deg, "grasp_seated": self.grasp_seated,
+                "gripped_at_s": self.gripped_at_s}
 
 
 @dataclass(frozen=True)
@@ -502,9 +510,11 @@ class _Run:
         self.held: str | None = None
         self.weld: int | None = None
         self.grasped: set[str] = set()
+        self.closing: GripperStep | None = None  # the close under way while its part is not yet held
         self.awake: set[str] = set()  # parts that may no longer sleep (see SimSettings.kit_sleep_threshold)
         self.planned_grasps = dict(planned_grasps or {})  # id(closing step) -> tcp_from_part the plan grasps at
         self.grasp_offsets: dict[str, tuple[float, float, bool]] = {}  # part -> (metres, degrees, seated)
+        self.gripped_at: dict[str, float] = {}  # part -> when its weld was made (program clock, seconds)
         self.released_from_hand: str | None = None  # released; the robot ignores it until the hand has opened
         self.fastened: dict[str, list[str]] = {name: [] for name in self.parts}
         self.grounded: set[str] = set()  # fastened to the jig, directly or through fastened parts
@@ -638,6 +648,8 @@ class _Run:
         self.arm_qd = np.array([s[1] for s in states])
         self._check_limits(role)
         self._check_contacts(role)
+        if self.closing is not None and self.held is None and self._gripped(self.closing.part):
+            self._weld(self.closing.part, self.planned_grasps.get(id(self.closing)))
         if self.time_s >= self.next_frame_s - 1e-9:
             self.recorder.add(self.snapshot())
             self.next_frame_s += self.settings.record_every_s
@@ -710,8 +722,10 @@ class _Run:
         if role.closes or role.opens:
             self._command_fingers(step.width_m)
         self.opening_m = step.width_m
+        self.closing = step if role.closes and step.part is not None and self.held is None else None
 
     def leave_gripper_step(self, step: GripperStep, role: _StepRole) -> None:
+        self.closing = None
         if role.opens and self.released_from_hand is not None:  # the fingers are clear of it now
             self.cell.set_robot_collisions(self.released_from_hand, True)
             self.released_from_hand = None
@@ -725,6 +739,16 @@ class _Run:
             self.grasp_failures.append(GraspFailure(step.part, step.label, self.time_s, touching))
             return
         self._weld(step.part, self.planned_grasps.get(id(step)))
+
+    def _gripped(self, name: str) -> bool:
+        """Whether every finger presses on part ``name`` with at least :attr:`SimSettings.grip_force_n`."""
+        pb, cell = self.pb, self.cell
+        for finger in cell.panda.fingers:
+            points = pb.getContactPoints(bodyA=cell.robot, bodyB=cell.parts[name], linkIndexA=finger,
+                                         physicsClientId=self.cid)
+            if sum(point[9] for point in points) < self.settings.grip_force_n:
+                return False
+        return True
 
     def _weld(self, name: str, planned_tcp_from_part: Pose | None) -> None:
         """Hold part ``name`` in the hand: at the planned grasp if it lies close to it (the closing fingers centre
@@ -763,6 +787,7 @@ class _Run:
                                      physicsClientId=cid)
         self.held = name
         self.grasped.add(name)
+        self.gripped_at[name] = self.time_s
         self._wake(name)
 
     def _release(self) -> None:
@@ -909,7 +934,7 @@ def _part_results(run: _Run, settle_motion: dict[str, float]) -> list[PartResult
         out.append(PartResult(name, final, position, rotation,
                               position <= settings.position_tolerance_m and rotation <= settings.rotation_tolerance_deg,
                               name in run.grasped, tuple(run.fastened[name]), settle_motion[name], moved, offset_m,
-                              offset_deg, seated))
+                              offset_deg, seated, run.gripped_at.get(name)))
     return out
 
 

@@ -66,6 +66,9 @@ SLIDE_SAMPLES = 5  # poses along the insertion where the neighbours it slides al
 SIDE_NORMAL_MAX_COS = 0.3  # a contact normal this close to perpendicular to the insertion is a neighbour's side
 HELD_OFF_TOLERANCE_M = 1e-4  # a part held off its neighbour by the slide clearance may sink this far into another
 INSERTION_SPEED_M_S = 0.05  # the TCP's top speed (m/s) while a part goes into its target: see _insertion_limits
+TORQUE_CHECK_HZ = 250.0  # a timed motion's torques are checked at this rate (the simulator steps at 240 Hz)
+TORQUE_RETIMINGS = 4  # at most this many slower timings of one motion for its torques
+TORQUE_SCALE_MARGIN = 0.9  # each slower timing scales accelerations by this much more than the torques ask
 LIMIT_FRACTION = 0.9  # motions are planned at this fraction of the published limits: headroom for tracking
 PANDA_LIMITS = JointLimits(LIMIT_FRACTION * VELOCITY_LIMITS, LIMIT_FRACTION * ACCELERATION_LIMITS,
                            LIMIT_FRACTION * JERK_LIMITS)
@@ -124,6 +127,7 @@ class CellWorld:
         self.panda = panda
         self.payloads = dict(payloads or {})  # part -> its mass properties: held, its weight must be held too
         self._load: HoldingTorques | None = None
+        self._arm_torques: HoldingTorques | None = None
         self.static = static
         self.parts = parts
         self.rng = rng
@@ -175,6 +179,14 @@ class CellWorld:
         self._load = None
         if part is not None and part in self.payloads:
             self._load = HoldingTorques(self.checker, self.payloads[part], grasp.part_from_tcp.inverse())
+
+    def torques(self) -> HoldingTorques:
+        """The joint-torque model of the arm as it is now: with the held part's load, or the empty hand's."""
+        if self._load is not None:
+            return self._load
+        if self._arm_torques is None:
+            self._arm_torques = HoldingTorques(self.checker)
+        return self._arm_torques
 
     # --- kinematics -------------------------------------------------------------------------------------------
     def solve_ik(self, world_from_tcp: Pose, seed_q: np.ndarray, valid, part: str, stage: str,
@@ -482,8 +494,18 @@ def _timed(world: CellWorld, path: np.ndarray, valid, part: str, stage: str,
     if len(path) < 2:
         path = np.stack([path[0], path[0] + 1e-9])
     try:
-        return time_path(path, limits, is_valid=valid, first_invalid=getattr(valid, "first_invalid", None),
-                         position_limits=(world.panda.lower_limits, world.panda.upper_limits), stops=stops)
+        timed = time_path(path, limits, is_valid=valid, first_invalid=getattr(valid, "first_invalid", None),
+                          position_limits=(world.panda.lower_limits, world.panda.upper_limits), stops=stops)
+        torques = world.torques()
+        for _ in range(TORQUE_RETIMINGS):  # slower where the arm and its load need more torque than they have
+            times = np.append(np.arange(0.0, timed.duration, 1.0 / TORQUE_CHECK_HZ), timed.duration)
+            scale = torques.motion_scale(*timed.at_times(times))
+            if scale >= 1.0:
+                break
+            limits = limits.slowed(float(np.sqrt(TORQUE_SCALE_MARGIN * scale)))
+            timed = time_path(path, limits, is_valid=valid, first_invalid=getattr(valid, "first_invalid", None),
+                              position_limits=(world.panda.lower_limits, world.panda.upper_limits), stops=stops)
+        return timed
     except ValueError as exc:
         raise TaskPlanningError("straight_line_blocked", part, stage, str(exc)) from exc
     finally:

@@ -17,6 +17,12 @@ When that is below the wrist's acceleration limit, every joint's motion is slowe
 ``s`` the ratio, accelerations scale by ``s``, velocities by ``sqrt(s)`` and jerks by ``s^1.5`` (the same path,
 played back slower), never below :data:`MIN_SCALE`. Light parts (the usual case) keep the full limits.
 
+That model is a first guess. Every timed motion is then checked with the arm's and the payload's rigid-body
+inverse dynamics (:meth:`HoldingTorques.moving_torques_nm`, Newton-Euler with the identified link masses and
+inertias of :data:`PANDA_LINK_DYNAMICS`, equal to PyBullet's own to 1e-6 N m), and timed slower where any joint
+would need more than :data:`MOVING_TORQUE_FRACTION` of its torque limit (:meth:`HoldingTorques.motion_scale`;
+``cell/task.py``).
+
 Units: kilograms, metres, seconds, radians; frames as the names say.
 """
 
@@ -64,6 +70,11 @@ errors. (The simulated wrist sagged 10-28 degrees off its path, and the part hit
 table top by its edge where gravity alone needed up to 134% of joint 5's 12 N m. At 90%, carrying a 3.8 kg top
 whose hold needed 86-90% of joint 5's limit, joints 5 and 6 saturated on the way, the wrist fell 0.8 rad behind
 and whipped through at 2.8 rad/s, beyond joint 6's velocity limit.)"""
+MOVING_TORQUE_FRACTION = 0.9
+"""A timed motion may need at most this fraction of each joint's torque limit (inverse dynamics, the arm and its
+load): the rest corrects tracking errors. (Timed at the limits :func:`carry_limits` leaves a light part, a
+bookcase's 0.8 kg board of 36 x 48 cm, the simulated joint 6 hit its 12 N m swinging it: the wrist fell behind
+and then whipped through at 3.7 rad/s, beyond its 2.61.)"""
 MIN_SCALE = 0.1
 """Accelerations are never scaled below this fraction (velocities: its square root)."""
 GRAVITY_M_S2 = 9.81
@@ -128,13 +139,15 @@ class HoldingTorques:
                  tcp_link: str = "panda_grasptarget", torque_limits_nm=PANDA_TORQUE_LIMITS_NM,
                  link_masses: dict | None = None, fraction: float = HOLDING_TORQUE_FRACTION) -> None:
         self.kinematics = kinematics
-        anchors, points, masses = [], [], []
-        for link, (mass, _) in (link_masses or PANDA_LINK_DYNAMICS).items():
+        anchors, points, masses, rotations, inertias = [], [], [], [], []
+        for link, (mass, inertia) in (link_masses or PANDA_LINK_DYNAMICS).items():
             index, anchor_from_link = kinematics.anchor_of(link)
             centre = kinematics.chain.centre_of_mass.get(link, np.zeros(3))
             anchors.append(index)
             points.append(anchor_from_link[:3, :3] @ centre + anchor_from_link[:3, 3])
             masses.append(mass)
+            rotations.append(anchor_from_link[:3, :3])  # pybullet_data's inertial frames are not rotated
+            inertias.append(inertia)
         if payload is not None:
             if tcp_from_part is None:
                 raise ValueError("a payload needs tcp_from_part, the part's pose in the TCP frame")
@@ -143,10 +156,15 @@ class HoldingTorques:
             anchors.append(index)
             points.append(anchor_from_com.position)
             masses.append(payload.mass_kg)
+            rotations.append(anchor_from_com.matrix()[:3, :3])
+            inertias.append(payload.inertia_kg_m2)
         self.payload_kg = 0.0 if payload is None else float(payload.mass_kg)
         self._anchors = np.array(anchors, dtype=np.int64)
         self._points = np.array(points, dtype=np.float64)
-        self._weights = GRAVITY_M_S2 * np.array(masses, dtype=np.float64)
+        self._masses = np.array(masses, dtype=np.float64)
+        self._weights = GRAVITY_M_S2 * self._masses
+        self._rotations = np.array(rotations, dtype=np.float64)  # (B, 3, 3) anchor_from_body (principal axes)
+        self._inertias = np.array(inertias, dtype=np.float64)  # (B, 3) principal moments, kg m^2
         self._axes = kinematics.joint_axes()
         # joint k (child anchor k + 1) moves the masses hanging from anchors k + 1 and beyond (a serial arm)
         self._moved = self._anchors[None, :] >= np.arange(1, 8)[:, None]  # (7, B)
@@ -166,6 +184,61 @@ class HoldingTorques:
             * self._weights[None, None, :, None]
         return -np.einsum("nki,nkbi,kb->nk", axes, moment, self._moved.astype(np.float64))  # holds: -gravity's
 
+    def moving_torques_nm(self, qs: np.ndarray, qds: np.ndarray, qdds: np.ndarray) -> np.ndarray:
+        """(N, 7) joint torques (N m) that move the arm and payload along ``qs``, ``qds``, ``qdds`` (N, 7): rad,
+        rad/s, rad/s^2; rigid-body inverse dynamics (Newton-Euler), without joint friction. At rest it equals
+        :meth:`torques_nm`.
+
+        The base is fixed. Link k's angular velocity and acceleration, and the acceleration of its joint's origin,
+        follow outwards from the base; each body's centre of mass accelerates with its link; joint k delivers the
+        moment about its axis that accelerates every body beyond it against gravity (world -z):
+        ``tau_k = z_k . sum_b [(c_b - o_k) x m_b (a_b - g) + I_b alpha_b + omega_b x I_b omega_b]``.
+        """
+        qs, qds, qdds = (np.atleast_2d(np.asarray(v, dtype=np.float64)) for v in (qs, qds, qdds))
+        frames = self.kinematics.link_frames(qs)  # (N, 8, 4, 4): base, then each joint's child link
+        count = len(qs)
+        axes = np.einsum("nkij,kj->nki", frames[:, 1:, :3, :3], self._axes)  # (N, 7, 3) world
+        origins = frames[:, :, :3, 3]  # (N, 8, 3)
+        omega = np.zeros((count, 8, 3))
+        alpha = np.zeros((count, 8, 3))
+        accel = np.zeros((count, 8, 3))  # of each anchor's origin
+        for k in range(7):  # a serial arm: anchor k + 1 hangs from anchor k through joint k
+            reach = origins[:, k + 1] - origins[:, k]
+            accel[:, k + 1] = (accel[:, k] + np.cross(alpha[:, k], reach)
+                               + np.cross(omega[:, k], np.cross(omega[:, k], reach)))
+            spin = axes[:, k] * qds[:, k, None]
+            omega[:, k + 1] = omega[:, k] + spin
+            alpha[:, k + 1] = alpha[:, k] + axes[:, k] * qdds[:, k, None] + np.cross(omega[:, k], spin)
+        body = frames[:, self._anchors]  # (N, B, 4, 4)
+        centres = np.einsum("nbij,bj->nbi", body[..., :3, :3], self._points) + body[..., :3, 3]  # (N, B, 3)
+        w, dw = omega[:, self._anchors], alpha[:, self._anchors]  # (N, B, 3)
+        arm = centres - origins[:, self._anchors]
+        a_centre = accel[:, self._anchors] + np.cross(dw, arm) + np.cross(w, np.cross(w, arm))
+        force = self._masses[None, :, None] * (a_centre + np.array([0.0, 0.0, GRAVITY_M_S2]))  # (N, B, 3)
+        world_from_principal = np.einsum("nbij,bjk->nbik", body[..., :3, :3], self._rotations)  # (N, B, 3, 3)
+        inertia = np.einsum("nbij,bj,nbkj->nbik", world_from_principal, self._inertias, world_from_principal)
+        moment_at_centre = (np.einsum("nbij,nbj->nbi", inertia, dw)
+                            + np.cross(w, np.einsum("nbij,nbj->nbi", inertia, w)))
+        lever = centres[:, None, :, :] - origins[:, 1:, None, :]  # (N, 7, B, 3) from each joint's origin
+        moment = np.cross(lever, force[:, None]) + moment_at_centre[:, None]  # (N, 7, B, 3)
+        return np.einsum("nki,nkbi,kb->nk", axes, moment, self._moved.astype(np.float64))
+
+    def motion_scale(self, qs: np.ndarray, qds: np.ndarray, qdds: np.ndarray,
+                     fraction: float = MOVING_TORQUE_FRACTION) -> float:
+        """The time scaling (1: none; at least :data:`MIN_SCALE`) that keeps the motion sampled at ``qs``, ``qds``,
+        ``qdds`` (N, 7) within ``fraction`` of every joint's torque limit, under the scaling of
+        :func:`carry_limits` (accelerations by ``s``, velocities by ``sqrt(s)``): the torque beyond holding the
+        load still scales by ``s``, the holding torque not at all."""
+        moving = self.moving_torques_nm(qs, qds, qdds)
+        holding = self.torques_nm(np.atleast_2d(qs))
+        cap = fraction * self.limits_nm
+        over = np.abs(moving) > cap
+        if not over.any():
+            return 1.0
+        spare = np.maximum(cap - np.abs(holding), 0.0)[over]
+        dynamic = np.abs(moving - holding)[over]
+        return float(np.clip(np.min(spare / np.maximum(dynamic, 1e-12)), MIN_SCALE, 1.0))
+
     def within(self, qs: np.ndarray) -> np.ndarray:
         """(N,) whether each configuration holds the load within :attr:`fraction` of every joint's limit."""
         return np.all(np.abs(self.torques_nm(qs)) <= self.fraction * self.limits_nm, axis=1)
@@ -178,5 +251,5 @@ class HoldingTorques:
                 f"more than {self.fraction:.0%} of its {self.limits_nm[k]:.0f} N m")
 
 
-__all__ = ["DEFAULT_DENSITY_KG_M3", "HoldingTorques", "MassProperties", "PANDA_LINK_DYNAMICS",
+__all__ = ["DEFAULT_DENSITY_KG_M3", "HoldingTorques", "MOVING_TORQUE_FRACTION", "MassProperties", "PANDA_LINK_DYNAMICS",
            "PANDA_TORQUE_LIMITS_NM", "carry_limits", "carry_scale", "mass_properties"]

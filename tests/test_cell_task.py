@@ -300,3 +300,36 @@ def test_a_held_part_too_heavy_for_the_wrist_makes_a_configuration_invalid(panda
     assert first == (int(np.argmin(answers)) if not answers.all() else None)  # batched: the same answer
     world.hold(None, None, 0.08)
     assert valid.load is not None and world.validity().load is None  # the empty hand carries no load
+
+
+def test_a_heavy_carry_is_timed_within_the_joint_torques(panda):
+    """A 1.8 kg board held 15 cm off its centre, swung about the wrist: timed at the unloaded arm's limits, its
+    inverse dynamics need more than the wrist's 12 N m; the task planner times it slower, until every joint stays
+    within MOVING_TORQUE_FRACTION of its limit all along. The empty hand keeps the full speed."""
+    from cell.task import _timed
+    from planning.payload import MOVING_TORQUE_FRACTION, mass_properties
+
+    board = trimesh.creation.box((0.5, 0.3, 0.02))
+    parts = {"board": ConvexPart.from_mesh("board", board)}
+    world = CellWorld(panda, Pose.identity(), {}, parts, np.random.default_rng(0),
+                      payloads={"board": mass_properties(board)})
+    world.set_part_poses({})
+    grasp = Grasp(Pose([-0.15, 0.0, 0.0], [1, 0, 0, 0]), width_m=0.02, opening_m=0.03, score=1.0,
+                  centroid_score=1.0, contact_score=1.0)
+    start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
+    path = np.stack([start, start + [0.0, 0.0, 0.0, 0.0, 0.0, 1.5, 0.0]])  # joint 6 at its acceleration limit
+
+    def peak_share(timed):
+        _, qs, qds, qdds = timed.sample(500.0)
+        return float(np.max(np.abs(world.torques().moving_torques_nm(qs, qds, qdds)) / world.torques().limits_nm))
+
+    world.hold("board", grasp, grasp.width_m)
+    assert world.torques().payload_kg == pytest.approx(1.8)
+    fast = time_path(path, PANDA_LIMITS)
+    assert peak_share(fast) > 1.0
+    slowed = _timed(world, path, lambda q: True, "board", "test")
+    assert peak_share(slowed) <= MOVING_TORQUE_FRACTION + 0.02  # checked at 250 Hz, sampled here at 500 Hz
+    assert slowed.duration > fast.duration
+    world.hold(None, None, 0.08)
+    assert world.torques().payload_kg == 0.0
+    assert _timed(world, path, lambda q: True, "board", "test").duration == pytest.approx(fast.duration)

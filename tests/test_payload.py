@@ -100,3 +100,39 @@ def test_a_heavy_part_held_far_out_is_refused_where_the_wrist_cannot_hold_it():
     worst = qs[np.argmin(edge)]
     assert not edge[np.argmin(edge)] and "panda_joint" in held_at_edge.words(worst)
     assert HOLDING_TORQUE_FRACTION < 1.0
+
+
+def test_moving_torques_agree_with_pybullets_inverse_dynamics():
+    """Newton-Euler torques of the arm in motion, alone and with a payload (a mass and principal inertias at the
+    TCP), against PyBullet's own inverse dynamics with the same link masses and inertias."""
+    from cell.bullet import BulletClient
+    from cell.robot import Panda
+    from planning.payload import PANDA_LINK_DYNAMICS, HoldingTorques, MassProperties
+    from planning.robot_collision import RobotCollisionChecker
+
+    checker = RobotCollisionChecker(np.eye(4), {})
+    payload = MassProperties(2.0, Pose.identity(), (0.02, 0.03, 0.05))
+    models = {"arm": HoldingTorques(checker), "loaded": HoldingTorques(checker, payload, Pose.identity())}
+    rng = np.random.default_rng(11)
+    states = [(rng.uniform(-1.5, 1.5, 7), rng.uniform(-2.0, 2.0, 7), rng.uniform(-10.0, 10.0, 7)) for _ in range(3)]
+    for name, model in models.items():
+        with BulletClient() as client:  # PyBullet builds its inverse-dynamics model once: set dynamics first
+            pb, cid = client.pb, client.client_id
+            pb.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
+            panda = Panda(client, Pose.identity())
+            index = {pb.getJointInfo(panda.body, j, physicsClientId=cid)[12].decode(): j
+                     for j in range(pb.getNumJoints(panda.body, physicsClientId=cid))}
+            for link, (mass, inertia) in PANDA_LINK_DYNAMICS.items():
+                pb.changeDynamics(panda.body, index[link], mass=mass, localInertiaDiagonal=inertia,
+                                  physicsClientId=cid)
+            if name == "loaded":  # the massless TCP link carries the payload
+                pb.changeDynamics(panda.body, index["panda_grasptarget"], mass=payload.mass_kg,
+                                  localInertiaDiagonal=payload.inertia_kg_m2, physicsClientId=cid)
+            for q, qd, qdd in states:
+                expected = pb.calculateInverseDynamics(panda.body, list(q) + [0.04, 0.04], list(qd) + [0.0, 0.0],
+                                                       list(qdd) + [0.0, 0.0], physicsClientId=cid)[:7]
+                np.testing.assert_allclose(model.moving_torques_nm(q, qd, qdd)[0], expected, atol=1e-6)
+            at_rest = model.moving_torques_nm(states[0][0], np.zeros(7), np.zeros(7))[0]
+            np.testing.assert_allclose(at_rest, model.torques_nm(states[0][0][None])[0], atol=1e-9)
+    moving = states[1]
+    assert not np.allclose(models["arm"].moving_torques_nm(*moving), models["loaded"].moving_torques_nm(*moving))

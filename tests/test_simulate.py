@@ -250,6 +250,22 @@ def test_parts_overlapping_at_their_targets_fit(arm):
     assert {p.name: p for p in colliding.parts}["b"].position_error_m > SimSettings().position_tolerance_m
 
 
+def test_the_grip_holds_from_the_moment_both_fingers_press_on_the_part(arm):
+    """a is 40 mm wide, the fingers start 10 mm wider and close at 0.05 m/s each: both press on it within about
+    0.1 s of a 2 s close, and it is welded then (squeezed on for the rest of the close, PyBullet's finger contacts
+    turned a light table leg 12 degrees about the closing axis). A grip force no finger reaches welds it only when
+    the close ends, as before."""
+    steps, q = pick_and_place(arm, PARTS[0], HOME, CLOSED_M, OPENING_M)
+    steps[2] = replace(steps[2], duration_s=2.0)
+    program = Program(steps + [MotionStep("return home", timed(q, HOME))], initial_width_m=OPENING_M)
+    close_starts_s = sum(step.timed.duration for step in steps[:2])
+    early = {p.name: p for p in simulate_program(program, PARTS, STATIC, BASE).parts}["a"]
+    assert early.grasped and early.grasp_seated and early.within_tolerance
+    assert 0.05 < early.gripped_at_s - close_starts_s < 0.3
+    late = {p.name: p for p in simulate_program(program, PARTS, STATIC, BASE, SimSettings(grip_force_n=1e6)).parts}
+    assert late["a"].gripped_at_s - close_starts_s == pytest.approx(2.0, abs=0.01)
+
+
 def test_grasp_far_from_the_plan_is_not_seated(arm):
     """The program closes with the TCP 12 mm beside a's centre along the closing axis: the part does not lie where
     this grasp expects it, so it is held where the fingers found it, and the error shows at the target."""
