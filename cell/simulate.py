@@ -91,6 +91,7 @@ from planning.robot_collision import ALLOWED_SELF_PAIRS, ARM_JOINTS
 
 FIXTURE = "fixture"  # the name in ``fasten_to`` that stands for the jig (the static bodies under the target)
 MIN_RATE_HZ = 240.0
+KIT_SLEEP_CHECK_S = 0.25  # how often untouched kit parts at rest are put back where they came to rest
 ARM_TORQUE_LIMITS_NM = PANDA_TORQUE_LIMITS_NM  # Franka's published joint torque limits
 LINK_DYNAMICS = PANDA_LINK_DYNAMICS  # identified link masses and inertias (planning/payload.py)
 ROBOT = "robot"
@@ -153,7 +154,11 @@ class SimSettings:
     # None: parts never sleep. PyBullet's solver lets a part resting on its pedestal untouched creep by millimetres
     # a minute (a standing drawer front 4.7 mm in 50 s, then grasped that far off its planned grasp, met a
     # neighbour; a chair's back post fell off); asleep, it stays where it settled. A part tipping over passes this
-    # speed well within the 2 s and keeps falling.
+    # speed well within the 2 s and keeps falling. Bullet also wakes a sleeping body when another passes within its
+    # contact margin without touching it, and one woken so may not sleep again (a cabinet's drawer back standing on
+    # its 6 mm edge beside a creeping neighbour, woken by a board carried past, turned 10 degrees in 29 s and the
+    # fingers came down on it): every KIT_SLEEP_CHECK_S, a kit part that touches nothing but static bodies and
+    # moves slower than this is put back where it was at the check before (see :meth:`_Run._keep_kit_asleep`)
     kit_sleep_threshold: float | None = 1e-5
     joint_limit_margin_rad: float = 1e-3  # a joint this far beyond its position limit breaks it
     velocity_tolerance: float = 0.03  # relative: a joint faster than (1 + this) x its velocity limit breaks it
@@ -529,6 +534,8 @@ class _Run:
         self.overlaps = self._overlaps_at_targets()
         self.fitted: set[str] = set()  # held parts whose overlap partners no longer collide with them
         self.inserting = False  # the held part's insertion is under way (see :meth:`_insert`)
+        self.steps_to_sleep_check = 0
+        self.kit_rest: dict[str, tuple] = {}  # kit part -> (position, orientation) where it is held still
         self.arm_q = np.zeros(7)
         self.arm_qd = np.zeros(7)
 
@@ -650,6 +657,10 @@ class _Run:
         self._check_contacts(role)
         if self.closing is not None and self.held is None and self._gripped(self.closing.part):
             self._weld(self.closing.part, self.planned_grasps.get(id(self.closing)))
+        self.steps_to_sleep_check -= 1
+        if self.steps_to_sleep_check <= 0 and self.settings.kit_sleep_threshold is not None:
+            self.steps_to_sleep_check = max(1, int(round(KIT_SLEEP_CHECK_S * self.settings.rate_hz)))
+            self._keep_kit_asleep()
         if self.time_s >= self.next_frame_s - 1e-9:
             self.recorder.add(self.snapshot())
             self.next_frame_s += self.settings.record_every_s
@@ -660,6 +671,30 @@ class _Run:
         fingers = self.pb.getJointStates(cell.robot, cell.panda.fingers, physicsClientId=self.cid)
         return CellSnapshot({name: cell.world_from_part(name) for name in cell.parts},
                             tuple(float(v) for v in self.arm_q), (float(fingers[0][0]), float(fingers[1][0])))
+
+    def _keep_kit_asleep(self) -> None:
+        """Hold still the kit parts (never woken for a pick) that touch nothing but static bodies and move slower
+        than :attr:`SimSettings.kit_sleep_threshold`, as if asleep: each is put back where it was found so at the
+        check before (see there: Bullet does not always let such a part sleep again once something passing has
+        woken it). Touched by anything else, or faster, a part is let go."""
+        pb, cid, cell = self.pb, self.cid, self.cell
+        static = set(cell.static.values())
+        for name, body in cell.parts.items():
+            if name in self.awake or name == self.held:
+                self.kit_rest.pop(name, None)
+                continue
+            linear, angular = pb.getBaseVelocity(body, physicsClientId=cid)
+            speed = float(np.dot(linear, linear) + np.dot(angular, angular))
+            touched = any(point[2] not in static for point in pb.getContactPoints(bodyA=body, physicsClientId=cid))
+            if touched or speed >= self.settings.kit_sleep_threshold:
+                self.kit_rest.pop(name, None)
+                continue
+            rest = self.kit_rest.get(name)
+            if rest is None:
+                self.kit_rest[name] = pb.getBasePositionAndOrientation(body, physicsClientId=cid)
+            elif speed > 0.0:
+                pb.resetBasePositionAndOrientation(body, *rest, physicsClientId=cid)
+                pb.resetBaseVelocity(body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], physicsClientId=cid)
 
     def _wake(self, name: str) -> None:
         """``name`` wakes and never sleeps again: from the approach to its pick on, so that the approach, the grasp

@@ -419,3 +419,50 @@ def test_a_part_at_rest_in_the_kit_sleeps_until_touched(threshold):
                                   -1, (settled + 0.1 * normal + [0.0, 0.0, 0.06]).tolist(), physicsClientId=cid)
         pb.resetBaseVelocity(ball, (-2.0 * normal).tolist(), physicsClientId=cid)  # thrown at its face, near the top
         assert np.linalg.norm(run(1.0) - settled) > 0.01
+
+
+def test_a_kit_part_that_bullet_keeps_awake_is_held_still_until_touched():
+    """Bullet does not always put a resting kit part back to sleep: woken by a board carried past within its contact
+    margin, a cabinet's drawer back standing on its edge beside a creeping neighbour stayed awake, turned 10 degrees
+    in 29 s, and the fingers came down on it. Whatever keeps it awake (here: sleeping switched off in Bullet), the
+    run holds an untouched kit part still where it came to rest, which Bullet's solver alone lets creep; a ball
+    thrown at it lets it go."""
+    from cell.simulate import _Cell, _Run, _StepRole
+
+    settings = SimSettings()
+    size, half = (0.3, 0.014, 0.15), 0.15  # turned 0.3 rad about +z
+    turn = [np.cos(half), 0.0, 0.0, np.sin(half)]
+    normal = np.array([-np.sin(2 * half), np.cos(2 * half), 0.0])  # the board's face, world frame
+    board = SimPart("board", box(size), Pose([0.35, 0.3, 0.04 + size[2] / 2], turn), at(0.5, 0.0, 0.3), (FIXTURE,))
+    static = [STATIC[0], StaticBody("pedestal", box((0.1, 0.03, 0.04)), at(0.35, 0.3, 0.02))]
+
+    def creep(hold: bool) -> float:
+        with BulletClient() as client:
+            pb, cid = client.pb, client.client_id
+            pb.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
+            pb.setTimeStep(1.0 / settings.rate_hz, physicsClientId=cid)
+            cell = _Cell(client, [board], static, BASE, settings)
+            run = _Run(cell, 0.08, [board], settings)
+            if not hold:
+                run._keep_kit_asleep = lambda: None
+            body = cell.parts["board"]
+            pb.changeDynamics(body, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING, physicsClientId=cid)
+            run.start(HOME)
+
+            def wait(seconds):
+                for _ in range(int(round(seconds * settings.rate_hz))):
+                    run.physics_step(HOME, np.zeros(7), _StepRole("waiting"))
+                return np.array(pb.getBasePositionAndOrientation(body, physicsClientId=cid)[0])
+
+            settled = wait(3.0)
+            later = wait(20.0 - 1.0 / settings.rate_hz)  # the last step is a check
+            if hold:
+                ball = pb.createMultiBody(1.0, pb.createCollisionShape(pb.GEOM_SPHERE, radius=0.02,
+                                                                       physicsClientId=cid),
+                                          -1, (later + 0.1 * normal + [0.0, 0.0, 0.06]).tolist(), physicsClientId=cid)
+                pb.resetBaseVelocity(ball, (-2.0 * normal).tolist(), physicsClientId=cid)  # near its top
+                assert np.linalg.norm(wait(1.0) - later) > 0.01
+            return float(np.linalg.norm(later - settled))
+
+    assert creep(hold=True) < 1e-6
+    assert creep(hold=False) > 1e-4
