@@ -91,7 +91,7 @@ from planning.robot_collision import ALLOWED_SELF_PAIRS, ARM_JOINTS
 
 FIXTURE = "fixture"  # the name in ``fasten_to`` that stands for the jig (the static bodies under the target)
 MIN_RATE_HZ = 240.0
-KIT_SLEEP_CHECK_S = 0.25  # how often untouched kit parts at rest are put back where they came to rest
+KIT_HOLD_CHECK_S = 0.25  # how often untouched kit parts at rest are put back where they came to rest
 ARM_TORQUE_LIMITS_NM = PANDA_TORQUE_LIMITS_NM  # Franka's published joint torque limits
 LINK_DYNAMICS = PANDA_LINK_DYNAMICS  # identified link masses and inertias (planning/payload.py)
 ROBOT = "robot"
@@ -157,8 +157,8 @@ class SimSettings:
     # speed well within the 2 s and keeps falling. Bullet also wakes a sleeping body when another passes within its
     # contact margin without touching it, and one woken so may not sleep again (a cabinet's drawer back standing on
     # its 6 mm edge beside a creeping neighbour, woken by a board carried past, turned 10 degrees in 29 s and the
-    # fingers came down on it): every KIT_SLEEP_CHECK_S, a kit part that touches nothing but static bodies and
-    # moves slower than this is put back where it was at the check before (see :meth:`_Run._keep_kit_asleep`)
+    # fingers came down on it): every KIT_HOLD_CHECK_S, a kit part that touches nothing but static bodies and
+    # moves slower than this is put back where it was first found so (see :meth:`_Run._hold_kit_still`)
     kit_sleep_threshold: float | None = 1e-5
     joint_limit_margin_rad: float = 1e-3  # a joint this far beyond its position limit breaks it
     velocity_tolerance: float = 0.03  # relative: a joint faster than (1 + this) x its velocity limit breaks it
@@ -534,7 +534,7 @@ class _Run:
         self.overlaps = self._overlaps_at_targets()
         self.fitted: set[str] = set()  # held parts whose overlap partners no longer collide with them
         self.inserting = False  # the held part's insertion is under way (see :meth:`_insert`)
-        self.steps_to_sleep_check = 0
+        self.steps_to_kit_check = 0
         self.kit_rest: dict[str, tuple] = {}  # kit part -> (position, orientation) where it is held still
         self.arm_q = np.zeros(7)
         self.arm_qd = np.zeros(7)
@@ -657,10 +657,10 @@ class _Run:
         self._check_contacts(role)
         if self.closing is not None and self.held is None and self._gripped(self.closing.part):
             self._weld(self.closing.part, self.planned_grasps.get(id(self.closing)))
-        self.steps_to_sleep_check -= 1
-        if self.steps_to_sleep_check <= 0 and self.settings.kit_sleep_threshold is not None:
-            self.steps_to_sleep_check = max(1, int(round(KIT_SLEEP_CHECK_S * self.settings.rate_hz)))
-            self._keep_kit_asleep()
+        self.steps_to_kit_check -= 1
+        if self.steps_to_kit_check <= 0 and self.settings.kit_sleep_threshold is not None:
+            self.steps_to_kit_check = max(1, int(round(KIT_HOLD_CHECK_S * self.settings.rate_hz)))
+            self._hold_kit_still()
         if self.time_s >= self.next_frame_s - 1e-9:
             self.recorder.add(self.snapshot())
             self.next_frame_s += self.settings.record_every_s
@@ -672,11 +672,11 @@ class _Run:
         return CellSnapshot({name: cell.world_from_part(name) for name in cell.parts},
                             tuple(float(v) for v in self.arm_q), (float(fingers[0][0]), float(fingers[1][0])))
 
-    def _keep_kit_asleep(self) -> None:
+    def _hold_kit_still(self) -> None:
         """Hold still the kit parts (never woken for a pick) that touch nothing but static bodies and move slower
-        than :attr:`SimSettings.kit_sleep_threshold`, as if asleep: each is put back where it was found so at the
-        check before (see there: Bullet does not always let such a part sleep again once something passing has
-        woken it). Touched by anything else, or faster, a part is let go."""
+        than :attr:`SimSettings.kit_sleep_threshold`, as if asleep: each is put back where it was first found so
+        (see there: Bullet does not always let such a part sleep again once something passing has woken it).
+        Touched by anything else, or faster, a part is let go (and found at rest again later)."""
         pb, cid, cell = self.pb, self.cid, self.cell
         static = set(cell.static.values())
         for name, body in cell.parts.items():

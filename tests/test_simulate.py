@@ -444,7 +444,7 @@ def test_a_kit_part_that_bullet_keeps_awake_is_held_still_until_touched():
             cell = _Cell(client, [board], static, BASE, settings)
             run = _Run(cell, 0.08, [board], settings)
             if not hold:
-                run._keep_kit_asleep = lambda: None
+                run._hold_kit_still = lambda: None
             body = cell.parts["board"]
             pb.changeDynamics(body, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING, physicsClientId=cid)
             run.start(HOME)
