@@ -44,21 +44,30 @@ def test_a_heavy_top_held_by_its_edge_is_carried_slower_the_farther_it_is_held()
     assert carry_scale(anvil, edge_grasp(0.15), 18.0) == MIN_SCALE
 
 
+def _identified_panda(client):
+    """The Panda in ``client`` (gravity on) with the simulator's identified link masses and inertias: (Panda, link
+    name -> link index). PyBullet builds its inverse-dynamics model on the first call: change dynamics before."""
+    from cell.robot import Panda
+    from planning.payload import PANDA_LINK_DYNAMICS
+
+    pb, cid = client.pb, client.client_id
+    pb.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
+    panda = Panda(client, Pose.identity())
+    index = {pb.getJointInfo(panda.body, j, physicsClientId=cid)[12].decode(): j
+             for j in range(pb.getNumJoints(panda.body, physicsClientId=cid))}
+    for link, (mass, inertia) in PANDA_LINK_DYNAMICS.items():
+        pb.changeDynamics(panda.body, index[link], mass=mass, localInertiaDiagonal=inertia, physicsClientId=cid)
+    return panda, index
+
+
 def _pybullet_gravity_torques(q, payload_kg=0.0, tcp_from_com=None):
     """Joint torques holding the Panda (the simulator's link masses) still at ``q``, from PyBullet's own inverse
     dynamics; a payload is a point mass welded to the TCP link at ``tcp_from_com`` (metres)."""
     from cell.bullet import BulletClient
-    from cell.robot import Panda
-    from planning.payload import PANDA_LINK_DYNAMICS
 
     with BulletClient() as client:
         pb, cid = client.pb, client.client_id
-        pb.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
-        panda = Panda(client, Pose.identity())
-        index = {pb.getJointInfo(panda.body, j, physicsClientId=cid)[12].decode(): j
-                 for j in range(pb.getNumJoints(panda.body, physicsClientId=cid))}
-        for link, (mass, inertia) in PANDA_LINK_DYNAMICS.items():
-            pb.changeDynamics(panda.body, index[link], mass=mass, localInertiaDiagonal=inertia, physicsClientId=cid)
+        panda, index = _identified_panda(client)
         tau = np.array(pb.calculateInverseDynamics(panda.body, list(q) + [0.04, 0.04], [0.0] * 9, [0.0] * 9,
                                                    physicsClientId=cid)[:7])
         if payload_kg:  # the point mass's weight, through PyBullet's Jacobian at the TCP link
@@ -106,8 +115,7 @@ def test_moving_torques_agree_with_pybullets_inverse_dynamics():
     """Newton-Euler torques of the arm in motion, alone and with a payload (a mass and principal inertias at the
     TCP), against PyBullet's own inverse dynamics with the same link masses and inertias."""
     from cell.bullet import BulletClient
-    from cell.robot import Panda
-    from planning.payload import PANDA_LINK_DYNAMICS, HoldingTorques, MassProperties
+    from planning.payload import HoldingTorques, MassProperties
     from planning.robot_collision import RobotCollisionChecker
 
     checker = RobotCollisionChecker(np.eye(4), {})
@@ -116,15 +124,9 @@ def test_moving_torques_agree_with_pybullets_inverse_dynamics():
     rng = np.random.default_rng(11)
     states = [(rng.uniform(-1.5, 1.5, 7), rng.uniform(-2.0, 2.0, 7), rng.uniform(-10.0, 10.0, 7)) for _ in range(3)]
     for name, model in models.items():
-        with BulletClient() as client:  # PyBullet builds its inverse-dynamics model once: set dynamics first
+        with BulletClient() as client:
             pb, cid = client.pb, client.client_id
-            pb.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
-            panda = Panda(client, Pose.identity())
-            index = {pb.getJointInfo(panda.body, j, physicsClientId=cid)[12].decode(): j
-                     for j in range(pb.getNumJoints(panda.body, physicsClientId=cid))}
-            for link, (mass, inertia) in PANDA_LINK_DYNAMICS.items():
-                pb.changeDynamics(panda.body, index[link], mass=mass, localInertiaDiagonal=inertia,
-                                  physicsClientId=cid)
+            panda, index = _identified_panda(client)
             if name == "loaded":  # the massless TCP link carries the payload
                 pb.changeDynamics(panda.body, index["panda_grasptarget"], mass=payload.mass_kg,
                                   localInertiaDiagonal=payload.inertia_kg_m2, physicsClientId=cid)
