@@ -83,10 +83,7 @@ CHOCK_END_INSET_M = 0.002  # chocks stop this short of the part's ends
 CHOCK_HEIGHT_FRACTION = 0.35  # a chock rises this fraction of the part's height above the pedestal's top ...
 CHOCK_MAX_HEIGHT_M = 0.01  # ... at most this much
 CHOCK_CLEARANCE_M = 0.0005  # between a chock and the part's side
-# a part leaning on its chocks moves its top by at most this (taller chocks for tall parts) ... (at 4 mm, a
-# cabinet's 128 mm drawer side standing on its edge leaned onto a chock in the simulated kit, 3 mm at its middle,
-# and a finger of the grasp planned for it upright, 5 mm to spare at each side, came down on it)
-CHOCK_LEAN_M = 0.002
+CHOCK_LEAN_M = 0.004  # a part leaning on its chocks moves its top by at most this (taller chocks for tall parts) ...
 CHOCK_TALL_FRACTION = 0.25  # ... with chocks rising at most this fraction of its height above the pedestal
 ELONGATED_RATIO = 2.0  # only a footprint at least this many times longer than wide is cradled
 MAX_REST_POSES = 24  # stable poses considered per part (a round leg has one per facet, each turned about its axis)
