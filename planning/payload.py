@@ -195,8 +195,12 @@ class HoldingTorques:
         ``tau_k = z_k . sum_b [(c_b - o_k) x m_b (a_b - g) + I_b alpha_b + omega_b x I_b omega_b]``.
         """
         qs, qds, qdds = (np.atleast_2d(np.asarray(v, dtype=np.float64)) for v in (qs, qds, qdds))
-        frames = self.kinematics.link_frames(qs)  # (N, 8, 4, 4): base, then each joint's child link
-        count = len(qs)
+        return self._newton_euler(self.kinematics.link_frames(qs), qds, qdds)
+
+    def _newton_euler(self, frames: np.ndarray, qds: np.ndarray, qdds: np.ndarray) -> np.ndarray:
+        """:meth:`moving_torques_nm` from the link frames ``frames`` (N, 8, 4, 4: the base, then each joint's child
+        link) of the configurations."""
+        count = len(frames)
         axes = np.einsum("nkij,kj->nki", frames[:, 1:, :3, :3], self._axes)  # (N, 7, 3) world
         origins = frames[:, :, :3, 3]  # (N, 8, 3)
         omega = np.zeros((count, 8, 3))
@@ -229,8 +233,10 @@ class HoldingTorques:
         ``qdds`` (N, 7) within ``fraction`` of every joint's torque limit, under the scaling of
         :func:`carry_limits` (accelerations by ``s``, velocities by ``sqrt(s)``): the torque beyond holding the
         load still scales by ``s``, the holding torque not at all."""
-        moving = self.moving_torques_nm(qs, qds, qdds)
-        holding = self.torques_nm(np.atleast_2d(qs))
+        qs, qds, qdds = (np.atleast_2d(np.asarray(v, dtype=np.float64)) for v in (qs, qds, qdds))
+        frames = self.kinematics.link_frames(qs)
+        moving = self._newton_euler(frames, qds, qdds)
+        holding = self._newton_euler(frames, np.zeros_like(qds), np.zeros_like(qdds))  # equals torques_nm
         cap = fraction * self.limits_nm
         over = np.abs(moving) > cap
         if not over.any():
