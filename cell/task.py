@@ -493,9 +493,12 @@ def _timed(world: CellWorld, path: np.ndarray, valid, part: str, stage: str,
     stops = [kept.index(k) for k in stops if k in kept and 0 < kept.index(k) < len(kept) - 1]
     if len(path) < 2:
         path = np.stack([path[0], path[0] + 1e-9])
+    def timed_within(limits: JointLimits):
+        return time_path(path, limits, is_valid=valid, first_invalid=getattr(valid, "first_invalid", None),
+                         position_limits=(world.panda.lower_limits, world.panda.upper_limits), stops=stops)
+
     try:
-        timed = time_path(path, limits, is_valid=valid, first_invalid=getattr(valid, "first_invalid", None),
-                          position_limits=(world.panda.lower_limits, world.panda.upper_limits), stops=stops)
+        timed = timed_within(limits)
         torques = world.torques()
         for _ in range(TORQUE_RETIMINGS):  # slower where the arm and its load need more torque than they have
             times = np.append(np.arange(0.0, timed.duration, 1.0 / TORQUE_CHECK_HZ), timed.duration)
@@ -503,8 +506,7 @@ def _timed(world: CellWorld, path: np.ndarray, valid, part: str, stage: str,
             if scale >= 1.0:
                 break
             limits = limits.slowed(float(np.sqrt(TORQUE_SCALE_MARGIN * scale)))
-            timed = time_path(path, limits, is_valid=valid, first_invalid=getattr(valid, "first_invalid", None),
-                              position_limits=(world.panda.lower_limits, world.panda.upper_limits), stops=stops)
+            timed = timed_within(limits)
         return timed
     except ValueError as exc:
         raise TaskPlanningError("straight_line_blocked", part, stage, str(exc)) from exc
