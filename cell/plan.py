@@ -25,7 +25,7 @@ from planning.collision import ConvexPart, box_distance, world_bounds
 from planning.disassembly import SequenceResult
 from planning.fixture import fixture_pads
 from planning.grasp import APPROACH_M, Grasp, feasible_grasps
-from planning.gripper import clearance_gripper
+from planning.gripper import clearance_gripper, default_gripper
 from planning.kitting import (
     HAND_CLEARANCE_M,
     NO_GRASP_AT_TARGET,
@@ -117,9 +117,11 @@ def grasps_clear_at_target(grasps: list[Grasp], world_from_target: Pose, obstacl
     world_from_mesh) pairs: the parts placed before, the jig's pads) and the table top at ``floor_z`` with the part
     at its target and along the whole straight insertion of :data:`INSERTION_M` along ``insertion_world`` that the
     arm makes (with only its last 3 cm checked, as the sequence planner does, a finger of bookcase_expedit_0373 met a
-    shelf higher up), ranked for the target, best first."""
+    shelf higher up), and whose exact hand closed on the part clears them there too (chair_10's back panel lay where
+    a closed finger on its back post was), ranked for the target, best first."""
     return feasible_grasps(grasps, world_from_target, obstacles, insertion_world, floor_z=floor_z,
-                           insertion_sweep_m=INSERTION_M, gripper=clearance_gripper(HAND_CLEARANCE_M))
+                           insertion_sweep_m=INSERTION_M, gripper=clearance_gripper(HAND_CLEARANCE_M),
+                           closed_gripper=default_gripper())
 
 
 def _table(scene: Scene) -> StaticObstacle:

@@ -72,6 +72,7 @@ __all__ = [
     "antipodal_grasps",
     "rank",
     "feasible_grasps",
+    "grasp_pose_key",
     "explain_no_grasp",
     "thinnest_width_m",
     "mesh_key",
@@ -833,6 +834,7 @@ def feasible_grasps(
     min_insertion_alignment: float = -0.3,
     weights: GraspWeights = DEFAULT_WEIGHTS,
     gripper: GripperCollisionModel | None = None,
+    closed_gripper: GripperCollisionModel | None = None,
 ) -> list[Grasp]:
     """The grasps usable with the part at ``world_from_part``, ranked (see :func:`rank`), best first.
 
@@ -842,7 +844,11 @@ def feasible_grasps(
     - with an insertion direction: stay clear at the poses the hand passes through while the part travels the
       last ``insertion_sweep_m`` into its target (sampled every ``sweep_step_m``), and do not lead the part:
       ``approach . insertion >= min_insertion_alignment``;
-    - with ``retreat_m > 0``: stay clear while backing off along -approach by up to ``retreat_m``.
+    - with ``retreat_m > 0``: stay clear while backing off along -approach by up to ``retreat_m``;
+    - with a ``closed_gripper`` model: that hand, closed to ``grasp.width_m`` on the part, is clear too at the part's
+      pose and along the insertion sweep (the fingers hold the part there; not on the retreat, made open). A
+      neighbour flush with a gripped face can lie where a closed finger is and the opened one is not: a chair's
+      back panel against its back post.
 
     At pick (the part lying in the kitting area) pass ``insertion_direction_world=None``: no sweep, and the
     ranking then only prefers top-down approaches.
@@ -918,4 +924,17 @@ def feasible_grasps(
                 if hit:
                     break
             ok[gi] = not hit
-    return [g for g, keep in zip(ranked, ok) if keep]
+    kept = [g for g, keep in zip(ranked, ok) if keep]
+    if closed_gripper is None or not kept:
+        return kept
+    closed = feasible_grasps([dataclasses.replace(g, opening_m=g.width_m) for g in kept], world_from_part,
+                             obstacle_set, insertion_direction_world, floor_z, insertion_sweep_m=insertion_sweep_m,
+                             sweep_step_m=sweep_step_m, floor_margin_m=floor_margin_m,
+                             min_insertion_alignment=min_insertion_alignment, weights=weights, gripper=closed_gripper)
+    holding = {grasp_pose_key(g) for g in closed}
+    return [g for g in kept if grasp_pose_key(g) in holding]
+
+
+def grasp_pose_key(grasp: Grasp) -> tuple:
+    """Where the grasp holds the part, whatever its opening and ranking scores."""
+    return (tuple(np.round(grasp.part_from_tcp.position, 9)), tuple(np.round(grasp.part_from_tcp.quat_wxyz, 9)))

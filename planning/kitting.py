@@ -37,7 +37,7 @@ import numpy as np
 import trimesh
 
 from planning.fixture import FINGER_CLEARANCE_M, MIN_PAD_FRACTION
-from planning.grasp import APPROACH_M, Grasp, feasible_grasps
+from planning.grasp import APPROACH_M, Grasp, feasible_grasps, grasp_pose_key
 from planning.gripper import clearance_gripper
 from planning.pose import Pose
 
@@ -1055,14 +1055,9 @@ def clear_at_pick(grasps: Sequence[Grasp], world_from_part: Pose, obstacles, flo
     arrives (over the last ``approach_m`` of its straight approach too), and closed to ``width_m`` on the part, as
     it lifts: a closing fingertip that reaches below a board's edge moves towards the pedestal under it (5 mm per
     finger), which the open hand alone does not show."""
-    arriving = feasible_grasps(grasps, world_from_part, obstacles, None, floor_z=floor_z, retreat_m=approach_m,
-                               gripper=gripper)
-    if not arriving:
-        return []
-    closed = feasible_grasps([dataclasses.replace(g, opening_m=g.width_m) for g in arriving], world_from_part,
-                             obstacles, None, floor_z=floor_z, gripper=gripper)
-    kept = {_pose_key(g) for g in arriving} & {_pose_key(g) for g in closed}
-    return [g for g in grasps if _pose_key(g) in kept]
+    kept = {grasp_pose_key(g) for g in feasible_grasps(grasps, world_from_part, obstacles, None, floor_z=floor_z,
+                                                        retreat_m=approach_m, gripper=gripper, closed_gripper=gripper)}
+    return [g for g in grasps if grasp_pose_key(g) in kept]
 
 
 def _neighbour_hand_for(world_from_part: Pose, grasp: Grasp):
@@ -1084,11 +1079,6 @@ def _pickable(grasps: Sequence[Grasp], world_from_part: Pose, support, floor_z: 
     spoiled = {_grasp_key(g) for g in slanted} - {_grasp_key(g) for g in clear_at_pick(
         slanted, world_from_part, list(support) + list(neighbours), floor_z, TILTED_HAND)}
     return [g for g in feasible if _grasp_key(g) not in spoiled]
-
-
-def _pose_key(grasp: Grasp) -> tuple:
-    """Where the grasp holds the part, whatever its opening and ranking scores."""
-    return (tuple(np.round(grasp.part_from_tcp.position, 9)), tuple(np.round(grasp.part_from_tcp.quat_wxyz, 9)))
 
 
 def _grasp_key(grasp: Grasp) -> tuple:

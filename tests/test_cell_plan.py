@@ -59,3 +59,22 @@ def test_a_grasp_at_the_target_clears_the_whole_insertion():
     assert feasible_grasps([grasp], target, shelf, down, floor_z=0.0,
                            gripper=clearance_gripper(HAND_CLEARANCE_M)) != []  # the last 3 cm are clear
     assert grasps_clear_at_target([grasp], target, shelf, down, 0.0) == []
+
+
+def test_a_grasp_at_the_target_keeps_its_closed_fingers_clear_of_a_neighbour_flush_with_the_gripped_face():
+    """A post between two thin plates, each flush with a face the fingers close on (a chair's back panel against
+    its back post): the opened fingers are clear of them, but the fingers closed on the post, as they are while
+    the arm inserts it, lie inside them. The grasp is ruled out at the target; the open hand alone kept it (the
+    motion planner then found no arm configuration at chair_10's release)."""
+    target = Pose([0.5, 0.0, 0.3], [1.0, 0.0, 0.0, 0.0])
+    post = 0.02  # square section, metres; the fingers close across it along world y
+    grasp = Grasp(Pose([0.0, 0.0, 0.08], DOWN_TCP), width_m=post, opening_m=0.04, score=1.0, centroid_score=1.0,
+                  contact_score=1.0)
+    plates = [(trimesh.creation.box((0.06, 0.003, 0.04)), Pose([0.5, side * (post / 2 + 0.002), 0.38 - 0.01],
+                                                                [1.0, 0.0, 0.0, 0.0])) for side in (-1.0, 1.0)]
+    down = np.array([0.0, 0.0, -1.0])
+    assert feasible_grasps([grasp], target, plates, down, floor_z=0.0, insertion_sweep_m=0.08,
+                           gripper=clearance_gripper(HAND_CLEARANCE_M)) != []  # open, grown by the clearance
+    assert grasps_clear_at_target([grasp], target, plates, down, 0.0) == []
+    lower = [(mesh, Pose(pose.position - np.array([0.0, 0.0, 0.04]), pose.quat_wxyz)) for mesh, pose in plates]
+    assert grasps_clear_at_target([grasp], target, lower, down, 0.0) != []  # below the fingertips
