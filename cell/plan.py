@@ -24,8 +24,8 @@ from planning.assembly import Assembly
 from planning.collision import ConvexPart, box_distance, world_bounds
 from planning.disassembly import SequenceResult
 from planning.fixture import fixture_pads
-from planning.grasp import APPROACH_M, Grasp, feasible_grasps
-from planning.gripper import clearance_gripper, default_gripper
+from planning.grasp import APPROACH_M, Grasp, feasible_grasps, grasp_pose_key
+from planning.gripper import clearance_gripper
 from planning.kitting import (
     HAND_CLEARANCE_M,
     NO_GRASP_AT_TARGET,
@@ -41,12 +41,12 @@ from planning.payload import (
     HOLDING_TORQUE_FRACTION,
     PANDA_PAYLOAD_KG,
     PANDA_TORQUE_LIMITS_NM,
-    HoldingTorques,
+    JointTorques,
     MassProperties,
     mass_properties,
 )
 from planning.pose import Pose
-from planning.robot_collision import RobotCollisionChecker
+from planning.robot_collision import LINK_CLEARANCE_M, RobotCollisionChecker
 from planning.sequence import GraspChecker, plan_assembly_sequence
 
 PANDA_REACH_M = 0.855  # from the shoulder (joint 2) to the flange, fully stretched
@@ -117,11 +117,12 @@ def grasps_clear_at_target(grasps: list[Grasp], world_from_target: Pose, obstacl
     world_from_mesh) pairs: the parts placed before, the jig's pads) and the table top at ``floor_z`` with the part
     at its target and along the whole straight insertion of :data:`INSERTION_M` along ``insertion_world`` that the
     arm makes (with only its last 3 cm checked, as the sequence planner does, a finger of bookcase_expedit_0373 met a
-    shelf higher up), and whose exact hand closed on the part clears them there too (chair_10's back panel lay where
-    a closed finger on its back post was), ranked for the target, best first."""
+    shelf higher up), and whose hand closed on the part clears them there too by the motion planner's clearance
+    (:data:`LINK_CLEARANCE_M`; chair_10's back panel lay where a closed finger on its back post was), ranked for
+    the target, best first."""
     return feasible_grasps(grasps, world_from_target, obstacles, insertion_world, floor_z=floor_z,
                            insertion_sweep_m=INSERTION_M, gripper=clearance_gripper(HAND_CLEARANCE_M),
-                           closed_gripper=default_gripper())
+                           closed_gripper=clearance_gripper(LINK_CLEARANCE_M))
 
 
 def _table(scene: Scene) -> StaticObstacle:
@@ -169,7 +170,7 @@ class _KitReach(Reach):
         self.table = {"table": (self._convex_part(table.mesh), table.world_from_obstacle.matrix())}
         self.settings = IKSettings(restarts=4)
         self.shoulder = scene.robot.world_from_base.apply(np.array([[0.0, 0.0, SHOULDER_HEIGHT_M]]))[0]
-        self.at_target_cache: dict[tuple, tuple | None] = {}  # (part, id(grasp), kit) -> configurations
+        self.at_target_cache: dict[tuple, tuple | None] = {}  # (part, grasp, opening, kit) -> configurations
         self.too_heavy = 0  # arm configurations refused only because they could not hold the part's weight
         self.heavy_parts: dict[str, int] = {}  # part -> how many of its grasps failed at the target for its weight
 
@@ -192,12 +193,14 @@ class _KitReach(Reach):
 
     def _chain(self, poses: list[Pose], seed: np.ndarray | None,
                checks: list[tuple[frozenset[str], frozenset[str]]] | None,
-               load: HoldingTorques | None = None, held: tuple[bool, ...] = (), elsewhere: bool = False):
+               load: JointTorques | None = None, held: tuple[bool, ...] = (), elsewhere: bool = False,
+               first_ik: IKSettings | None = None):
         """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its (ignore, hand_ignore)
         sets (see :meth:`RobotCollisionChecker.first_invalid`; no collision check when ``checks`` is None) and,
         where ``held``, holding the ``load``; or None. The first attempt starts from ``seed``; the others from where
         the last one left the arm, or, ``elsewhere``, from random configurations (the arm is redundant: another
-        elbow may clear what the first one meets)."""
+        elbow may clear what the first one meets). The first pose's inverse kinematics uses ``first_ik`` (default:
+        the planner's settings, few restarts), the others start from the pose before."""
         if not all(self._within_reach(pose) for pose in poses):
             return None
         for attempt in range(3):
@@ -206,7 +209,7 @@ class _KitReach(Reach):
                         if elsewhere else None)
             try:
                 for k, pose in enumerate(poses):
-                    settings = self.settings if k == 0 else IKSettings(restarts=1)
+                    settings = (first_ik or self.settings) if k == 0 else IKSettings(restarts=1)
                     previous = self.panda.inverse_tcp(pose, self.rng, seed_q=previous, settings=settings)
                     configurations.append(previous)
             except IKError:
@@ -248,14 +251,19 @@ class _KitReach(Reach):
     def at_target(self, part: str, grasp: Grasp, kit: list[tuple[trimesh.Trimesh, Pose]] = ()) -> tuple | None:
         """The arm configurations at ``part``'s release, pre-place and retreat's end with ``grasp``, clear of the
         parts on the jig then and of the ``kit`` bodies (computed once per part, grasp and kit)."""
-        key = (part, id(grasp), tuple((id(mesh), pose.position.tobytes(), pose.quat_wxyz.tobytes())
-                                      for mesh, pose in kit))
+        key = (part, grasp_pose_key(grasp), round(grasp.opening_m, 9),
+               tuple((id(mesh), pose.position.tobytes(), pose.quat_wxyz.tobytes()) for mesh, pose in kit))
         if key not in self.at_target_cache:
             refused = self.too_heavy
             poses = self._at_target_world(part, grasp, kit)
             # the part is in the hand at the release and the pre-place, not at the retreat's end
-            found = self._chain(poses, self.home_q, list(self._AT_TARGET_IGNORES), self._load(part, grasp),
-                                (True, True, False), elsewhere=bool(kit))
+            checks, load = list(self._AT_TARGET_IGNORES), self._load(part, grasp)
+            found = self._chain(poses, self.home_q, checks, load, (True, True, False), elsewhere=bool(kit))
+            if found is None and not kit:  # harder: other elbows, and more starts for the release (the first
+                # attempts start at home and near each other; cabinet_13's side panel lies at the edge of the reach)
+                start = self.rng.uniform(self.panda.lower_limits, self.panda.upper_limits)
+                found = self._chain(poses, start, checks, load, (True, True, False), elsewhere=True,
+                                    first_ik=IKSettings())
             self.at_target_cache[key] = None if found is None else tuple(found)
             if found is None and self.too_heavy > refused and not kit:
                 self.heavy_parts[part] = self.heavy_parts.get(part, 0) + 1
@@ -313,10 +321,10 @@ class _KitReach(Reach):
                             self._load(part, grasp), (True, False, True))
         return None if found is None else (tuple(found), target, grasp.opening_m)
 
-    def _load(self, part: str, grasp: Grasp) -> HoldingTorques | None:
+    def _load(self, part: str, grasp: Grasp) -> JointTorques | None:
         """The arm's static torques holding ``part`` at ``grasp`` (None when its mass is not known)."""
         payload = self.payloads.get(part)
-        return None if payload is None else HoldingTorques(self.checker, payload, grasp.part_from_tcp.inverse())
+        return None if payload is None else JointTorques(self.checker, payload, grasp.part_from_tcp.inverse())
 
     def still_clear(self, reach, obstacles) -> bool:
         """Whether the arm configurations of ``reach`` (at the pick and at the target) touch neither the table nor

@@ -42,7 +42,7 @@ from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS, IKErro
 from planning.collision import ConvexPart, shrunk, signed_distance
 from planning.grasp import APPROACH_M, Grasp
 from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path, straight_line_valid
-from planning.payload import HoldingTorques, MassProperties, carry_limits
+from planning.payload import JointTorques, MassProperties, carry_limits
 from planning.pose import Pose
 from planning.robot_collision import RobotCollisionChecker
 from planning.timing import JointLimits, time_path
@@ -126,8 +126,8 @@ class CellWorld:
                  motion: MotionSettings | None = None, payloads: dict[str, MassProperties] | None = None) -> None:
         self.panda = panda
         self.payloads = dict(payloads or {})  # part -> its mass properties: held, its weight must be held too
-        self._load: HoldingTorques | None = None
-        self._arm_torques: HoldingTorques | None = None
+        self._load: JointTorques | None = None
+        self._arm_torques: JointTorques | None = None
         self.static = static
         self.parts = parts
         self.rng = rng
@@ -178,14 +178,14 @@ class CellWorld:
                 checker.hold(held, grasp.part_from_tcp.inverse().matrix(), opening_m=opening_m)
         self._load = None
         if part is not None and part in self.payloads:
-            self._load = HoldingTorques(self.checker, self.payloads[part], grasp.part_from_tcp.inverse())
+            self._load = JointTorques(self.checker, self.payloads[part], grasp.part_from_tcp.inverse())
 
-    def torques(self) -> HoldingTorques:
+    def torques(self) -> JointTorques:
         """The joint-torque model of the arm as it is now: with the held part's load, or the empty hand's."""
         if self._load is not None:
             return self._load
         if self._arm_torques is None:
-            self._arm_torques = HoldingTorques(self.checker)
+            self._arm_torques = JointTorques(self.checker)
         return self._arm_torques
 
     # --- kinematics -------------------------------------------------------------------------------------------
@@ -368,11 +368,11 @@ class _Validity:
     than 2 mm between checks)."""
 
     def __init__(self, checker: RobotCollisionChecker, ignore: frozenset[str],
-                 held_ignore: frozenset[str] = frozenset(), load: HoldingTorques | None = None,
+                 held_ignore: frozenset[str] = frozenset(), load: JointTorques | None = None,
                  hand_ignore: frozenset[str] = frozenset()) -> None:
         self.checker, self.ignore, self.held_ignore = checker, frozenset(ignore), frozenset(held_ignore)
         self.hand_ignore = frozenset(hand_ignore)
-        self.load = load  # the held part's weight: a configuration must also hold it (HoldingTorques.within)
+        self.load = load  # the held part's weight: a configuration must also hold it (JointTorques.within)
 
     def __call__(self, q) -> bool:
         q = np.asarray(q, dtype=np.float64)

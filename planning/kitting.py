@@ -38,7 +38,7 @@ import trimesh
 
 from planning.fixture import FINGER_CLEARANCE_M, MIN_PAD_FRACTION
 from planning.grasp import APPROACH_M, Grasp, feasible_grasps, grasp_pose_key
-from planning.gripper import clearance_gripper
+from planning.gripper import MAX_OPENING_M, clearance_gripper
 from planning.pose import Pose
 
 HAND_CLEARANCE_M = 0.002  # grasps keep this from pedestals and neighbours (real hands are larger) ...
@@ -85,6 +85,9 @@ CHOCK_MAX_HEIGHT_M = 0.01  # ... at most this much
 CHOCK_CLEARANCE_M = 0.0005  # between a chock and the part's side
 CHOCK_LEAN_M = 0.004  # a part leaning on its chocks moves its top by at most this (taller chocks for tall parts) ...
 CHOCK_TALL_FRACTION = 0.25  # ... with chocks rising at most this fraction of its height above the pedestal
+LEAN_SHARES = (1.0, 0.5)  # a standing board's grasps open for these shares of its lean (widest first)
+CHOCK_CONTACT_SLOP_M = 0.0003  # a part between chocks moves this much farther than their clearance: the simulated
+# part is inset by 0.25 mm (half the joint clearance) and sinks about 0.05 mm into a contact
 ELONGATED_RATIO = 2.0  # only a footprint at least this many times longer than wide is cradled
 MAX_REST_POSES = 24  # stable poses considered per part (a round leg has one per facet, each turned about its axis)
 MAX_GROUND_POSES = 7  # ... of which this many (the best for picking from above) are tried on the ground
@@ -298,6 +301,24 @@ def cradle_chocks(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: f
             size[along], size[across], size[2] = hi - lo, CHOCK_WIDTH_M, height_m + rise
             chocks.append((tuple(float(v) for v in size), Pose(centre, [1.0, 0.0, 0.0, 0.0])))
     return tuple(chocks)
+
+
+def standing_lean_m(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, pedestal: Pedestal,
+                    height_m: float) -> float:
+    """How far the top of a board standing on its edge between the ``pedestal``'s chocks (as
+    :func:`cradle_chocks` makes them; the pedestal ``height_m`` tall) may move from where it stands, metres: its
+    foot slides across the gap c to one side (c: the chocks' clearance and :data:`CHOCK_CONTACT_SLOP_M`) and it
+    leans over the chocks on the other side, 2 c over their rise, up to its height H: ``c (1 + 2 H / rise)``; 0 for
+    a part that does not stand on its edge there, or has no chocks."""
+    if not pedestal.chocks:
+        return 0.0
+    rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
+    span = rested.max(axis=0) - rested.min(axis=0)
+    if span[2] <= ELONGATED_RATIO * min(span[0], span[1]):
+        return 0.0
+    rise = min(size[2] for size, _ in pedestal.chocks) - height_m
+    gap = CHOCK_CLEARANCE_M + CHOCK_CONTACT_SLOP_M
+    return float(gap * (1.0 + 2.0 * span[2] / rise)) if rise > 0.0 else 0.0
 
 
 def _centre_of_mass(mesh: trimesh.Trimesh) -> np.ndarray:
@@ -588,6 +609,7 @@ class _Layout:
         self.places_cache: dict[tuple, list] = {}
         self.support_cache: dict[tuple, Pedestal | None] = {}
         self.half_turn_cache: dict[tuple, bool] = {}  # (part, rest pose) -> the same turned half a turn
+        self.leaning_cache: dict[tuple, list[Grasp]] = {}  # (part, rest pose) -> grasps opened for its lean
         self.rests = None  # physics check (loose bodies, fixed bodies) -> bool, see plan_kitting
         self.settles = None  # physics (loose bodies, fixed bodies) -> where they come to rest, see plan_kitting
         self.unrested: set[str] = set()  # parts with no pose that rests on a pedestal
@@ -623,8 +645,10 @@ class _Layout:
         stack_first = _is_board(mesh)
         for attempt in ("stack", "ground") if stack_first else ("ground", "stack"):
             for rest_from_part, probability in poses[:1] if attempt == "stack" else ground[:MAX_GROUND_POSES]:
+                pose_grasps = grasps
                 if attempt == "ground":
                     rest_from_part = self._free_fingers(name, rest_from_part, grasps, grasp_ok_at_target)
+                    pose_grasps = self._leaning_grasps(name, rest_from_part, grasps) + list(grasps)
                 places = (self._stack_places(name, rest_from_part) if attempt == "stack"
                           else self._ground_places(name, rest_from_part))
                 tried, failed = 0, []  # (centre_xy, heading of the rest frame's x axis) of the places that failed
@@ -636,7 +660,7 @@ class _Layout:
                     if tried > MAX_PLACES_PER_POSE:
                         break
                     failed.append((xy, heading))
-                    found = self._try(name, mesh, grasps, grasp_ok_at_target, world_from_rest @ Pose.from_matrix(
+                    found = self._try(name, mesh, pose_grasps, grasp_ok_at_target, world_from_rest @ Pose.from_matrix(
                         rest_from_part), corners, pedestal, base, probability)
                     if found is not None:
                         slot, mine, surviving = found
@@ -683,6 +707,22 @@ class _Layout:
             self.support_cache[(name, np.round(lying, 9).tobytes())] = pedestal
             return lying
         return None
+
+    def _leaning_grasps(self, name: str, rest_from_part: np.ndarray, grasps: Sequence[Grasp]) -> list[Grasp]:
+        """For a board standing on its edge between chocks in this rest pose: ``grasps`` opened wider by twice
+        how far its top may move (:func:`standing_lean_m`), so that a finger coming down beside it clears it
+        leaning either way, then by half that (leaning onto one chock, its foot where it stood, as cabinet_13's
+        drawer side did by 6 mm at its top, where a finger with 5 mm to spare came down on it), for where the
+        widest opening meets a neighbour; else none. The same copies each time (the checks cache them)."""
+        key = (name, np.round(rest_from_part, 9).tobytes())
+        if key not in self.leaning_cache:
+            pedestal = self.support_cache.get(key)
+            lean = (0.0 if pedestal is None else
+                    standing_lean_m(self.meshes[name], rest_from_part, pedestal, self.area.pedestal_height_m))
+            self.leaning_cache[key] = [] if lean <= 0.0 else [
+                dataclasses.replace(g, opening_m=min(g.opening_m + 2.0 * share * lean, MAX_OPENING_M))
+                for share in LEAN_SHARES for g in grasps if g.opening_m < MAX_OPENING_M]
+        return self.leaning_cache[key]
 
     def _usable_at_target(self, name: str, grasp: Grasp, grasp_ok_at_target) -> bool:
         key = (name, _grasp_key(grasp))

@@ -18,9 +18,9 @@ When that is below the wrist's acceleration limit, every joint's motion is slowe
 played back slower), never below :data:`MIN_SCALE`. Light parts (the usual case) keep the full limits.
 
 That model is a first guess. Every timed motion is then checked with the arm's and the payload's rigid-body
-inverse dynamics (:meth:`HoldingTorques.moving_torques_nm`, Newton-Euler with the identified link masses and
+inverse dynamics (:meth:`JointTorques.moving_torques_nm`, Newton-Euler with the identified link masses and
 inertias of :data:`PANDA_LINK_DYNAMICS`, equal to PyBullet's own to 1e-6 N m), and timed slower where any joint
-would need more than :data:`MOVING_TORQUE_FRACTION` of its torque limit (:meth:`HoldingTorques.motion_scale`;
+would need more than :data:`MOVING_TORQUE_FRACTION` of its torque limit (:meth:`JointTorques.motion_scale`;
 ``cell/task.py``).
 
 Units: kilograms, metres, seconds, radians; frames as the names say.
@@ -124,8 +124,9 @@ def carry_limits(limits: JointLimits, payload: MassProperties, part_from_tcp: Po
     return limits.slowed(float(np.sqrt(scale)))
 
 
-class HoldingTorques:
-    """Static joint torques (N m) that hold the arm and a payload against gravity (world -z), per configuration.
+class JointTorques:
+    """Joint torques (N m) of the arm and a payload: static ones that hold them against gravity (world -z), per
+    configuration, and those of a motion (:meth:`moving_torques_nm`).
 
     The arm's links and hand are point masses (:data:`PANDA_LINK_DYNAMICS`) at their centres of mass
     (``chain.centre_of_mass``, the URDF's inertial origins); the payload is one at its centre of mass, rigidly held
@@ -257,5 +258,5 @@ class HoldingTorques:
                 f"more than {self.fraction:.0%} of its {self.limits_nm[k]:.0f} N m")
 
 
-__all__ = ["DEFAULT_DENSITY_KG_M3", "HoldingTorques", "MOVING_TORQUE_FRACTION", "MassProperties", "PANDA_LINK_DYNAMICS",
+__all__ = ["DEFAULT_DENSITY_KG_M3", "JointTorques", "MOVING_TORQUE_FRACTION", "MassProperties", "PANDA_LINK_DYNAMICS",
            "PANDA_TORQUE_LIMITS_NM", "carry_limits", "carry_scale", "mass_properties"]

@@ -20,8 +20,9 @@ from planning.convex import mesh_key
 from planning.disassembly import SequenceResult, _direction_label, plan_sequence
 from planning.fixture import PAD_HEIGHT_M, fixture_pads
 from planning.grasp import Grasp, antipodal_grasps, feasible_grasps
-from planning.gripper import default_gripper
+from planning.gripper import clearance_gripper
 from planning.pose import Pose
+from planning.robot_collision import LINK_CLEARANCE_M
 
 HAND_REACH_M = 0.2  # parts farther than this from a part's target cannot touch the hand holding it
 
@@ -95,7 +96,7 @@ class GraspChecker:
                 if box_distance(self.bounds[name], self.bounds[n]) < HAND_REACH_M]
         obstacles = [(p.mesh, p.assembly_from_part) for p in near] + self.pad_obstacles
         return feasible_grasps(candidates, part.assembly_from_part, obstacles, insertion_direction,
-                               floor_z=-PAD_HEIGHT_M, closed_gripper=default_gripper())
+                               floor_z=-PAD_HEIGHT_M, closed_gripper=clearance_gripper(LINK_CLEARANCE_M))
 
     def __call__(self, name: str, present: frozenset, insertion_direction: np.ndarray) -> Grasp | None:
         feasible = self.feasible(name, present, insertion_direction)

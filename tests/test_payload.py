@@ -78,14 +78,14 @@ def _pybullet_gravity_torques(q, payload_kg=0.0, tcp_from_com=None):
 
 
 def test_holding_torques_agree_with_pybullets_inverse_dynamics():
-    from planning.payload import HoldingTorques, MassProperties
+    from planning.payload import JointTorques, MassProperties
     from planning.robot_collision import RobotCollisionChecker
 
     checker = RobotCollisionChecker(np.eye(4), {})
-    arm_only = HoldingTorques(checker)
+    arm_only = JointTorques(checker)
     payload = MassProperties(2.5, Pose([0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]), (0.01, 0.01, 0.01))
     tcp_from_part = Pose([0.25, 0.05, 0.02], [1.0, 0.0, 0.0, 0.0])  # held 25 cm off its centre of mass
-    loaded = HoldingTorques(checker, payload, tcp_from_part)
+    loaded = JointTorques(checker, payload, tcp_from_part)
     rng = np.random.default_rng(7)
     for q in rng.uniform(-1.5, 1.5, (4, 7)):
         np.testing.assert_allclose(arm_only.torques_nm(q[None])[0], _pybullet_gravity_torques(q), atol=1e-6)
@@ -94,13 +94,13 @@ def test_holding_torques_agree_with_pybullets_inverse_dynamics():
 
 
 def test_a_heavy_part_held_far_out_is_refused_where_the_wrist_cannot_hold_it():
-    from planning.payload import HOLDING_TORQUE_FRACTION, HoldingTorques, MassProperties
+    from planning.payload import HOLDING_TORQUE_FRACTION, JointTorques, MassProperties
     from planning.robot_collision import RobotCollisionChecker
 
     checker = RobotCollisionChecker(np.eye(4), {})
     top = MassProperties(3.3, Pose([0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]), (0.05, 0.05, 0.1))
-    held_at_edge = HoldingTorques(checker, top, Pose([0.3, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]))
-    held_at_centre = HoldingTorques(checker, top, Pose.identity())
+    held_at_edge = JointTorques(checker, top, Pose([0.3, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]))
+    held_at_centre = JointTorques(checker, top, Pose.identity())
     qs = np.random.default_rng(3).uniform(-2.0, 2.0, (200, 7))
     edge, centre = held_at_edge.within(qs), held_at_centre.within(qs)
     assert centre.mean() > 0.9  # 3.3 kg at the TCP: almost anywhere
@@ -115,12 +115,12 @@ def test_moving_torques_agree_with_pybullets_inverse_dynamics():
     """Newton-Euler torques of the arm in motion, alone and with a payload (a mass and principal inertias at the
     TCP), against PyBullet's own inverse dynamics with the same link masses and inertias."""
     from cell.bullet import BulletClient
-    from planning.payload import HoldingTorques, MassProperties
+    from planning.payload import JointTorques, MassProperties
     from planning.robot_collision import RobotCollisionChecker
 
     checker = RobotCollisionChecker(np.eye(4), {})
     payload = MassProperties(2.0, Pose.identity(), (0.02, 0.03, 0.05))
-    models = {"arm": HoldingTorques(checker), "loaded": HoldingTorques(checker, payload, Pose.identity())}
+    models = {"arm": JointTorques(checker), "loaded": JointTorques(checker, payload, Pose.identity())}
     rng = np.random.default_rng(11)
     states = [(rng.uniform(-1.5, 1.5, 7), rng.uniform(-2.0, 2.0, 7), rng.uniform(-10.0, 10.0, 7)) for _ in range(3)]
     for name, model in models.items():

@@ -149,6 +149,25 @@ def test_a_thin_panel_standing_on_its_edge_gets_chocks_tall_enough_to_keep_it_up
     assert _sway_of_top_mm(panel, low) > 20.0
 
 
+@pytest.mark.parametrize("thickness_m, height_m", [(0.003, 0.254), (0.011, 0.128)])
+def test_a_panel_nudged_onto_its_chocks_moves_its_top_no_farther_than_kitting_allows(thickness_m, height_m):
+    """Nudged harder and harder, a panel standing between its chocks leans onto them (its foot sliding the other
+    way) and its top ends up to about a centimetre from where it stood: within :func:`standing_lean_m`, which
+    kitting opens the hand by on each side at its pick, and beyond what the chocks' clearance alone gives
+    (the simulated part is inset; cabinet_13's drawer side leaned onto a finger planned with 5 mm to spare)."""
+    from planning.kitting import CHOCK_CLEARANCE_M, standing_lean_m
+
+    panel = trimesh.creation.box((0.3, thickness_m, height_m))
+    _, _, _, chocks = _on_pedestal(panel)
+    assert chocks
+    rise = max(size[2] for size, _ in chocks) - PEDESTAL_HEIGHT_M
+    pedestal = dataclasses.replace(pedestal_for((0.15, 0.05), IDENTITY, PEDESTAL_HEIGHT_M), chocks=chocks)
+    allowed_mm = 1000 * standing_lean_m(panel, upright_rest_pose(panel, np.eye(3)), pedestal, PEDESTAL_HEIGHT_M)
+    sways = [_sway_of_top_mm(panel, chocks, nudge) for nudge in (0.2, 0.5, 1.0, 2.0)]
+    assert max(sways) <= allowed_mm
+    assert max(sways) > 1000 * CHOCK_CLEARANCE_M * height_m / rise  # leaning on the chocks' clearance alone
+
+
 def _square_frame(outer_m: float, bar_m: float, thickness_m: float) -> trimesh.Trimesh:
     """A flat square frame of four bars (a seat frame or a picture frame) in the x-y plane, its opening
     ``outer_m - 2 bar_m`` wide."""
