@@ -83,7 +83,7 @@ CHOCK_END_INSET_M = 0.002  # chocks stop this short of the part's ends
 CHOCK_HEIGHT_FRACTION = 0.35  # a chock rises this fraction of the part's height above the pedestal's top ...
 CHOCK_MAX_HEIGHT_M = 0.01  # ... at most this much
 CHOCK_CLEARANCE_M = 0.0005  # between a chock and the part's side
-CHOCK_LEAN_M = 0.004  # a part leaning on its chocks moves its top by at most this (taller chocks for tall parts) ...
+CHOCK_LEAN_M = 0.004  # chocks rise so that a board pivoting on its foot onto them moves its top by this ...
 CHOCK_TALL_FRACTION = 0.25  # ... with chocks rising at most this fraction of its height above the pedestal
 LEAN_SHARES = (1.0, 0.5)  # a standing board's grasps open for these shares of its lean (widest first)
 CHOCK_CONTACT_SLOP_M = 0.0003  # a part between chocks moves this much farther than their clearance: the simulated
@@ -276,8 +276,9 @@ def cradle_chocks(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: f
     rise = min(CHOCK_HEIGHT_FRACTION * span[2], CHOCK_MAX_HEIGHT_M)  # low, for a round leg lying down
     if span[2] > ELONGATED_RATIO * span[across]:
         # a board standing on its edge leans on its chocks by their clearance over their height: they rise far
-        # enough that its top moves at most about CHOCK_LEAN_M (on 1 cm chocks a 3 mm panel 25 cm tall leans by
-        # centimetres), capped at a quarter of its height (chocks rising to half of it blocked the carries past them)
+        # enough that, pivoting on its foot, its top moves about CHOCK_LEAN_M (on 1 cm chocks a 3 mm panel 25 cm
+        # tall leans by centimetres), capped at a quarter of its height (chocks rising to half of it blocked the
+        # carries past them); its foot may slide too, and the simulated part is smaller: standing_lean_m
         rise = max(rise, min(CHOCK_CLEARANCE_M * span[2] / CHOCK_LEAN_M, CHOCK_TALL_FRACTION * span[2]))
     chocks = []
     for end in (rested[:, along].min() + CHOCK_END_INSET_M, rested[:, along].max() - CHOCK_END_INSET_M):
@@ -1122,9 +1123,8 @@ def _pickable(grasps: Sequence[Grasp], world_from_part: Pose, support, floor_z: 
 
 
 def _grasp_key(grasp: Grasp) -> tuple:
-    """The same grasp whatever its ranking scores (ranking returns re-scored copies)."""
-    return (tuple(np.round(grasp.part_from_tcp.position, 9)), tuple(np.round(grasp.part_from_tcp.quat_wxyz, 9)),
-            round(grasp.opening_m, 9))
+    """The same grasp whatever its ranking scores (ranking returns re-scored copies), at the same opening."""
+    return grasp_pose_key(grasp) + (round(grasp.opening_m, 9),)
 
 
 def _why_not(name, mesh, grasps, grasp_ok_at_target, area, prefer, unrested: bool = False) -> tuple[str, str]:
