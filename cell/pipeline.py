@@ -225,7 +225,8 @@ class Pipeline:
         for slot in plan.slots:
             self.entries[slot.part]["kitting_world_from_part"] = pose_json(slot.world_from_part)
             self.entries[slot.part]["grasp"] = {"part_from_tcp": pose_json(slot.grasp.part_from_tcp),
-                                                "width_m": slot.grasp.width_m, "opening_m": slot.grasp.opening_m}
+                                                "width_m": slot.grasp.width_m, "opening_m": slot.grasp.opening_m,
+                                                "pick_opening_m": slot.grasp.opening_at_pick_m}
         self.report["trajectory_duration_s"] = plan.program.duration_s
         built = " built upside down," if upside_down else ""
         self.console.say(f"[6/8] timing:{built} a {plan.program.duration_s:.1f} s robot program, within the Panda's "

@@ -50,6 +50,7 @@ from planning.robot_collision import LINK_CLEARANCE_M, RobotCollisionChecker
 from planning.sequence import GraspChecker, plan_assembly_sequence
 
 PANDA_REACH_M = 0.855  # from the shoulder (joint 2) to the flange, fully stretched
+RELEASE_SEEDS = 4  # arm configurations at earlier releases that seed a release out of reach from elsewhere
 SHOULDER_HEIGHT_M = 0.333
 HAND_LENGTH_M = 0.21  # flange to the TCP between the fingertips
 NEAR_TARGET_M = 0.25  # placed parts farther than this from a part's target cannot touch the hand placing it
@@ -172,6 +173,8 @@ class _KitReach(Reach):
         self.shoulder = scene.robot.world_from_base.apply(np.array([[0.0, 0.0, SHOULDER_HEIGHT_M]]))[0]
         self.at_target_cache: dict[tuple, tuple | None] = {}  # (part, grasp, opening, kit) -> configurations
         self.too_heavy = 0  # arm configurations refused only because they could not hold the part's weight
+        self.chain_unreached = False  # the last _chain found no inverse kinematics (rather than only collisions)
+        self.release_seeds: list[np.ndarray] = []  # the latest arm configurations found at a release
         self.heavy_parts: dict[str, int] = {}  # part -> how many of its grasps failed at the target for its weight
 
     def _world(self, kit: list[tuple[trimesh.Trimesh, Pose]], jig_parts: list[str]) -> dict:
@@ -201,6 +204,7 @@ class _KitReach(Reach):
         the last one left the arm, or, ``elsewhere``, from random configurations (the arm is redundant: another
         elbow may clear what the first one meets). The first pose's inverse kinematics uses ``first_ik`` (default:
         the planner's settings, few restarts), the others start from the pose before."""
+        self.chain_unreached = True  # no attempt found inverse kinematics for every pose
         if not all(self._within_reach(pose) for pose in poses):
             return None
         for attempt in range(3):
@@ -214,6 +218,7 @@ class _KitReach(Reach):
                     configurations.append(previous)
             except IKError:
                 continue
+            self.chain_unreached = False
             free = checks is None or all(self.checker.is_valid(q, ignore=ignore, hand_ignore=hand_ignore)
                                          for q, (ignore, hand_ignore) in zip(configurations, checks))
             if load is not None and not all(load.within(q[None])[0] for q, h in zip(configurations, held) if h):
@@ -260,10 +265,18 @@ class _KitReach(Reach):
             checks, load = list(self._AT_TARGET_IGNORES), self._load(part, grasp)
             found = self._chain(poses, self.home_q, checks, load, (True, True, False), elsewhere=bool(kit))
             if found is None and not kit:  # harder: other elbows, and more starts for the release (the first
-                # attempts start at home and near each other; cabinet_13's side panel lies at the edge of the reach)
+                # attempts start at home and near each other)
                 start = self.rng.uniform(self.panda.lower_limits, self.panda.upper_limits)
                 found = self._chain(poses, start, checks, load, (True, True, False), elsewhere=True,
                                     first_ik=IKSettings())
+                # at the edge of the reach (cabinet_13's side panel), random starts rarely converge: from the
+                # releases found for other grasps and parts, nearby
+                for seed in (self.release_seeds[::-1] if found is None and self.chain_unreached else []):
+                    found = self._chain(poses, seed, checks, load, (True, True, False), first_ik=IKSettings())
+                    if found is not None or not self.chain_unreached:
+                        break
+            if found is not None:
+                self.release_seeds = (self.release_seeds + [found[0]])[-RELEASE_SEEDS:]
             self.at_target_cache[key] = None if found is None else tuple(found)
             if found is None and self.too_heavy > refused and not kit:
                 self.heavy_parts[part] = self.heavy_parts.get(part, 0) + 1
@@ -313,13 +326,13 @@ class _KitReach(Reach):
         world = self._world(list(obstacles), self.order[:self.order.index(part)])
         world[SELF] = (self._convex_part(self.meshes[part]), world_from_part.matrix())
         self.checker.set_obstacles(world)
-        self.checker.hold(None, opening_m=grasp.opening_m)
+        self.checker.hold(None, opening_m=grasp.opening_at_pick_m)
         # grasp: the hand around the part was checked by the grasp planner (the arm's links must clear it);
         # pre-grasp: clear of the part; lifted: the part is in the hand
         none, hand_only = (frozenset(), frozenset()), (frozenset(), frozenset({SELF}))
         found = self._chain([tcp, pre, lifted], self.home_q, [hand_only, none, (frozenset({SELF}), frozenset())],
                             self._load(part, grasp), (True, False, True))
-        return None if found is None else (tuple(found), target, grasp.opening_m)
+        return None if found is None else (tuple(found), target, max(grasp.opening_m, grasp.opening_at_pick_m))
 
     def _load(self, part: str, grasp: Grasp) -> JointTorques | None:
         """The arm's static torques holding ``part`` at ``grasp`` (None when its mass is not known)."""

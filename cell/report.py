@@ -10,7 +10,7 @@
      "parts": [{"name", "order", "target_assembly_from_part", "target_world_from_part",
                 "repair": {"translation_m", "rotation_deg"}, "insertion_direction" (the frame built on the jig,
                 +z up), "fastened_to",
-                "grasp": {"part_from_tcp", "width_m", "opening_m"}, "kitting_world_from_part",
+                "grasp": {"part_from_tcp", "width_m", "opening_m", "pick_opening_m"}, "kitting_world_from_part",
                 "final_world_from_part", "position_error_m", "rotation_error_deg", "within_tolerance"}, ...],
      "simulation": {...: what cell.simulate measured (contacts, limit violations, ...)}}
 

@@ -526,7 +526,7 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
     ``world`` must hold every part at its pick pose on entry (``set_part_poses``); ``progress(fraction)`` is
     called after each part; past ``deadline`` (``time.perf_counter()``) it gives up.
     """
-    program = Program(initial_width_m=tasks[0].grasp.opening_m if tasks else 0.08)
+    program = Program(initial_width_m=tasks[0].grasp.opening_at_pick_m if tasks else 0.08)
     plan = TaskPlan(program)
     poses = {t.part: t.world_from_pick for t in tasks}
     world.set_part_poses(poses)
@@ -623,7 +623,7 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
                                       "retreat")
         add_motion(name, "retreat", retreat, valid, None)
         q = retreat[-1]
-        opening = tasks[index + 1].grasp.opening_m if index + 1 < len(tasks) else 0.08
+        opening = tasks[index + 1].grasp.opening_at_pick_m if index + 1 < len(tasks) else 0.08
         if abs(opening - grasp.opening_m) > 1e-6:
             world.hold(None, None, max(opening, grasp.opening_m))
             if not world.validity()(q):

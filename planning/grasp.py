@@ -135,6 +135,8 @@ class Grasp:
     insertion_score: ``(1 + approach . insertion) / 2`` in the world, 0.5 when no insertion direction is given;
     top_down_score: ``(1 - approach_z) / 2`` in the world at the target, 0.5 when no target pose is given.
     contacts_part: (2, 3) the two contact points in the part frame, metres (first at -y, second at +y of the TCP).
+    pick_opening_m: opening used to approach the part where it is picked, when wider than ``opening_m`` (a board
+    standing between chocks may lean: :mod:`planning.kitting`), metres; None: ``opening_m`` there too.
     """
 
     part_from_tcp: Pose
@@ -146,6 +148,12 @@ class Grasp:
     insertion_score: float = 0.5
     top_down_score: float = 0.5
     contacts_part: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((2, 3)), repr=False)
+    pick_opening_m: float | None = None
+
+    @property
+    def opening_at_pick_m(self) -> float:
+        """The opening the hand approaches the part with where it is picked, metres."""
+        return self.opening_m if self.pick_opening_m is None else self.pick_opening_m
 
     @property
     def approach_part(self) -> np.ndarray:

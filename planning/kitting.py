@@ -710,8 +710,10 @@ class _Layout:
         return None
 
     def _leaning_grasps(self, name: str, rest_from_part: np.ndarray, grasps: Sequence[Grasp]) -> list[Grasp]:
-        """For a board standing on its edge between chocks in this rest pose: ``grasps`` opened wider by twice
-        how far its top may move (:func:`standing_lean_m`), so that a finger coming down beside it clears it
+        """For a board standing on its edge between chocks in this rest pose: ``grasps`` opened wider at the pick
+        (``Grasp.pick_opening_m``; at the target as usual: a wide open hand releasing a cabinet's top there met a
+        drawer front) by twice how far its top may move (:func:`standing_lean_m`), so that a finger coming down
+        beside it clears it
         leaning either way, then by half that (leaning onto one chock, its foot where it stood, as cabinet_13's
         drawer side did by 6 mm at its top, where a finger with 5 mm to spare came down on it), for where the
         widest opening meets a neighbour; else none. The same copies each time (the checks cache them)."""
@@ -721,7 +723,7 @@ class _Layout:
             lean = (0.0 if pedestal is None else
                     standing_lean_m(self.meshes[name], rest_from_part, pedestal, self.area.pedestal_height_m))
             self.leaning_cache[key] = [] if lean <= 0.0 else [
-                dataclasses.replace(g, opening_m=min(g.opening_m + 2.0 * share * lean, MAX_OPENING_M))
+                dataclasses.replace(g, pick_opening_m=min(g.opening_m + 2.0 * share * lean, MAX_OPENING_M))
                 for share in LEAN_SHARES for g in grasps if g.opening_m < MAX_OPENING_M]
         return self.leaning_cache[key]
 
@@ -1092,13 +1094,14 @@ def _picks_from_above(grasps: Sequence[Grasp], rest_from_part: np.ndarray) -> in
 
 def clear_at_pick(grasps: Sequence[Grasp], world_from_part: Pose, obstacles, floor_z: float,
                   gripper, approach_m: float = 0.0) -> list[Grasp]:
-    """The ``grasps`` (in their order) whose hand is clear of ``obstacles`` both opened to ``opening_m``, as it
-    arrives (over the last ``approach_m`` of its straight approach too), and closed to ``width_m`` on the part, as
-    it lifts: a closing fingertip that reaches below a board's edge moves towards the pedestal under it (5 mm per
-    finger), which the open hand alone does not show."""
-    kept = {grasp_pose_key(g) for g in feasible_grasps(grasps, world_from_part, obstacles, None, floor_z=floor_z,
-                                                        retreat_m=approach_m, gripper=gripper, closed_gripper=gripper)}
-    return [g for g in grasps if grasp_pose_key(g) in kept]
+    """The ``grasps`` (in their order) whose hand is clear of ``obstacles`` both opened to its opening at the pick
+    (``Grasp.opening_at_pick_m``), as it arrives (over the last ``approach_m`` of its straight approach too), and
+    closed to ``width_m`` on the part, as it lifts: a closing fingertip that reaches below a board's edge moves
+    towards the pedestal under it (5 mm per finger), which the open hand alone does not show."""
+    arriving = [dataclasses.replace(g, opening_m=g.opening_at_pick_m) for g in grasps]
+    kept = {_grasp_key(g) for g in feasible_grasps(arriving, world_from_part, obstacles, None, floor_z=floor_z,
+                                                   retreat_m=approach_m, gripper=gripper, closed_gripper=gripper)}
+    return [g for g, at_pick in zip(grasps, arriving) if _grasp_key(at_pick) in kept]
 
 
 def _neighbour_hand_for(world_from_part: Pose, grasp: Grasp):
@@ -1123,8 +1126,8 @@ def _pickable(grasps: Sequence[Grasp], world_from_part: Pose, support, floor_z: 
 
 
 def _grasp_key(grasp: Grasp) -> tuple:
-    """The same grasp whatever its ranking scores (ranking returns re-scored copies), at the same opening."""
-    return grasp_pose_key(grasp) + (round(grasp.opening_m, 9),)
+    """The same grasp whatever its ranking scores (ranking returns re-scored copies), at the same openings."""
+    return grasp_pose_key(grasp) + (round(grasp.opening_m, 9), round(grasp.opening_at_pick_m, 9))
 
 
 def _why_not(name, mesh, grasps, grasp_ok_at_target, area, prefer, unrested: bool = False) -> tuple[str, str]:

@@ -313,9 +313,9 @@ def test_an_asymmetric_board_is_also_tried_turned_half_a_turn_on_each_place():
 
 def test_a_board_standing_between_chocks_is_picked_with_the_hand_opened_for_its_lean():
     """A drawer side kitted standing on its 11 mm edge, as it sits in its drawer, between chocks: its grasp opens
-    wider by the lean kitting allows on each side (:func:`standing_lean_m`), so that a finger coming down beside
-    its top clears it leaning onto either chock; a block 4 cm thick stands without chocks and gets the usual
-    opening."""
+    wider at the pick by the lean kitting allows on each side (:func:`standing_lean_m`), so that a finger coming
+    down beside its top clears it leaning onto either chock, and as usual at its target; a block 4 cm thick stands
+    without chocks and gets the usual opening at both."""
     from planning.grasp import GRASP_CLEARANCE_M, antipodal_grasps
     from planning.kitting import standing_lean_m, upright_rest_pose
 
@@ -326,9 +326,11 @@ def test_a_board_standing_between_chocks_is_picked_with_the_hand_opened_for_its_
     assert standing.pedestal.chocks and standing.world_from_part.rotation[2, 2] > 0.999
     lean = standing_lean_m(board, upright_rest_pose(board, np.eye(3)), standing.pedestal, AREA.pedestal_height_m)
     assert lean > 0.005
-    assert standing.grasp.opening_m == pytest.approx(standing.grasp.width_m + GRASP_CLEARANCE_M + 2 * lean)
+    usual = standing.grasp.width_m + GRASP_CLEARANCE_M
+    assert standing.grasp.opening_m == pytest.approx(usual)
+    assert standing.grasp.opening_at_pick_m == pytest.approx(usual + 2 * lean)
     block = trimesh.creation.box((0.18, 0.04, 0.128))
     firm = plan_kitting(["block"], [block], {"block": antipodal_grasps(block, np.random.default_rng(0))},
                         lambda name, grasp: True, AREA, target_rotations={"block": np.eye(3)})[0]
     assert not firm.pedestal.chocks and firm.world_from_part.rotation[2, 2] > 0.999
-    assert firm.grasp.opening_m == pytest.approx(firm.grasp.width_m + GRASP_CLEARANCE_M)
+    assert firm.grasp.opening_m == firm.grasp.opening_at_pick_m == pytest.approx(firm.grasp.width_m + GRASP_CLEARANCE_M)
