@@ -17,7 +17,7 @@ import trimesh
 
 from cell.bullet import BulletClient
 from cell.resting import PhysicsRestCheck
-from cell.robot import IKError, IKSettings, Panda
+from cell.robot import IKError, IKSettings, Panda, pose_rng
 from cell.scene import Scene
 from cell.task import INSERTION_M, LIFT_M, CellWorld, PartTask, TaskPlan, TaskPlanningError, plan_tasks
 from planning.assembly import Assembly
@@ -50,6 +50,10 @@ from planning.robot_collision import LINK_CLEARANCE_M, RobotCollisionChecker
 from planning.sequence import GraspChecker, plan_assembly_sequence
 
 PANDA_REACH_M = 0.855  # from the shoulder (joint 2) to the flange, fully stretched
+CHAIN_ATTEMPTS = 3  # inverse-kinematics attempts for a chain of poses, each from where the last left the arm
+# ... or from random configurations, when another elbow is sought: in a probe (a forearm box in the kit, 20 seeds)
+# 3 attempts found one for 11 of 20 seeds
+CHAIN_ATTEMPTS_ELSEWHERE = 12
 RELEASE_SEEDS = 4  # arm configurations at earlier releases that seed a release out of reach from elsewhere
 SHOULDER_HEIGHT_M = 0.333
 HAND_LENGTH_M = 0.21  # flange to the TCP between the fingertips
@@ -159,10 +163,12 @@ class _KitReach(Reach):
     pre-place, end of the retreat), clear of the table, of the parts on the jig at that time and of the parts and
     pedestals laid out in the kitting area so far. Kitting keeps later parts clear of all of them."""
 
-    def __init__(self, panda: Panda, scene: Scene, rng: np.random.Generator, home_q: np.ndarray,
+    def __init__(self, panda: Panda, scene: Scene, seed: int, home_q: np.ndarray,
                  targets: dict[str, Pose], meshes: dict[str, trimesh.Trimesh], order: list[str],
                  insertion: dict[str, np.ndarray], payloads: dict[str, MassProperties] | None = None) -> None:
-        self.panda, self.rng, self.home_q = panda, rng, home_q
+        # every query draws its random starts from the seed and its own first pose (cell.robot.pose_rng), never
+        # from a generator shared with the queries before it
+        self.panda, self.seed, self.home_q = panda, seed, home_q
         self.payloads = dict(payloads or {})  # a held part's weight must be held at its configurations too
         self.targets, self.meshes, self.order, self.insertion = targets, meshes, order, insertion
         self.checker = RobotCollisionChecker(scene.robot.world_from_base.matrix(), {})
@@ -207,14 +213,15 @@ class _KitReach(Reach):
         self.chain_unreached = True  # no attempt found inverse kinematics for every pose
         if not all(self._within_reach(pose) for pose in poses):
             return None
-        for attempt in range(3):
+        rng = pose_rng(poses[0], self.seed)
+        for attempt in range(CHAIN_ATTEMPTS_ELSEWHERE if elsewhere else CHAIN_ATTEMPTS):
             configurations = []
-            previous = (seed if attempt == 0 else self.rng.uniform(self.panda.lower_limits, self.panda.upper_limits)
+            previous = (seed if attempt == 0 else rng.uniform(self.panda.lower_limits, self.panda.upper_limits)
                         if elsewhere else None)
             try:
                 for k, pose in enumerate(poses):
                     settings = (first_ik or self.settings) if k == 0 else IKSettings(restarts=1)
-                    previous = self.panda.inverse_tcp(pose, self.rng, seed_q=previous, settings=settings)
+                    previous = self.panda.inverse_tcp(pose, rng, seed_q=previous, settings=settings)
                     configurations.append(previous)
             except IKError:
                 continue
@@ -266,7 +273,7 @@ class _KitReach(Reach):
             found = self._chain(poses, self.home_q, checks, load, (True, True, False), elsewhere=bool(kit))
             if found is None and not kit:  # harder: other elbows, and more starts for the release (the first
                 # attempts start at home and near each other)
-                start = self.rng.uniform(self.panda.lower_limits, self.panda.upper_limits)
+                start = pose_rng(poses[0], self.seed + 1).uniform(self.panda.lower_limits, self.panda.upper_limits)
                 found = self._chain(poses, start, checks, load, (True, True, False), elsewhere=True,
                                     first_ik=IKSettings())
                 # at the edge of the reach (cabinet_13's side panel), random starts rarely converge: from the
@@ -435,7 +442,7 @@ class _Kit:
             touching = [n for n in self.steps[name].fastened_to if n in targets]
             self.touches[name] = tuple(touching + ([pads_under[name]] if name in pads_under else []))
         home_q = np.array(scene.robot.home_q)
-        kit_reach = _KitReach(panda, scene, np.random.default_rng([seed, 3]), home_q, targets,
+        kit_reach = _KitReach(panda, scene, seed, home_q, targets,
                               {p.name: p.mesh for p in assembly.parts}, order, self.insertion, payloads)
         ranked: dict[str, list[Grasp]] = {}
         bounds = {p.name: world_bounds(p.mesh, targets[p.name]) for p in assembly.parts}

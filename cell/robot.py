@@ -22,6 +22,17 @@ ACCELERATION_LIMITS = np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])
 JERK_LIMITS = np.array([7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0])
 
 
+def pose_rng(world_from_tcp: Pose, seed: int = 0) -> np.random.Generator:
+    """A generator of random IK starts drawn from ``seed`` and the target pose itself (rounded to 1 um and 1e-6 of
+    the w-first quaternion, sign fixed), so that the restarts for one target do not depend on which queries ran
+    before it: an unrelated change upstream (another layout tried, another part's grasp) no longer changes whether
+    a marginal target is reached."""
+    quat = np.asarray(world_from_tcp.quat_wxyz, dtype=np.float64)
+    quat = -quat if quat[np.flatnonzero(np.abs(quat) > 1e-9)[0]] < 0 else quat
+    key = np.round(np.concatenate([np.asarray(world_from_tcp.position) * 1e6, quat * 1e6])).astype(np.int64)
+    return np.random.default_rng([int(seed) & 0xFFFFFFFF, *(int(k) & 0xFFFFFFFF for k in key)])
+
+
 class IKError(RuntimeError):
     """No inverse-kinematics solution within tolerance and joint limits."""
 

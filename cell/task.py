@@ -38,7 +38,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from cell.program import GripperStep, MotionStep, Program
-from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS, IKError, IKSettings, Panda
+from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS, IKError, IKSettings, Panda, pose_rng
 from planning.collision import ConvexPart, shrunk, signed_distance
 from planning.grasp import APPROACH_M, Grasp
 from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path, straight_line_valid
@@ -130,7 +130,8 @@ class CellWorld:
         self._arm_torques: JointTorques | None = None
         self.static = static
         self.parts = parts
-        self.rng = rng
+        # IK restarts are drawn per target pose from this seed (cell.robot.pose_rng), not from a shared stream
+        self.ik_seed = int(rng.integers(2**31))
         self.motion = motion or MotionSettings()
         self.part_poses: dict[str, Pose] = {}
         self.checker = RobotCollisionChecker(world_from_base.matrix(), {})
@@ -202,7 +203,9 @@ class CellWorld:
         collided = None
         for attempt in range(IK_ATTEMPTS):
             try:
-                q = self.panda.inverse_tcp(world_from_tcp, self.rng, seed_q=seed_q if attempt == 0 else None,
+                if attempt == 0:
+                    rng = pose_rng(world_from_tcp, self.ik_seed)
+                q = self.panda.inverse_tcp(world_from_tcp, rng, seed_q=seed_q if attempt == 0 else None,
                                            settings=self.ik_settings)
             except IKError as exc:
                 last_error = str(exc)
@@ -231,7 +234,7 @@ class CellWorld:
             target = Pose(world_from_tcp_contact.position + offset_world * (k / steps),
                           world_from_tcp_contact.quat_wxyz)
             try:
-                q = self.panda.inverse_tcp(target, self.rng, seed_q=path[-1], settings=settings)
+                q = self.panda.inverse_tcp(target, pose_rng(target, self.ik_seed), seed_q=path[-1], settings=settings)
             except IKError as exc:
                 raise TaskPlanningError("no_ik", part, stage,
                                         f"straight line leaves the reachable space: {exc}") from exc

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from cell.bullet import BulletClient
-from cell.robot import IKError, Panda
+from cell.robot import IKError, Panda, pose_rng
 from cell.scene import SceneError, load_scene
 from planning.pose import Pose
 
@@ -70,6 +70,17 @@ def test_inverse_kinematics_top_down_grasps(panda):
         dp, da = panda.forward_tcp(q).distance(target)
         assert dp <= 2e-5 and da <= 2e-4  # polished: parts fit with fractions of a millimetre to spare
     assert solved >= 0.95 * trials
+
+
+def test_the_random_starts_for_a_target_follow_from_its_pose_and_the_seed_alone():
+    pose = Pose([0.4, -0.1, 0.3], [0.0, 0.6, 0.8, 0.0])
+    draws = pose_rng(pose, 3).uniform(size=5)
+    assert np.array_equal(draws, pose_rng(pose, 3).uniform(size=5))
+    # the same rotation written with the opposite quaternion sign
+    assert np.array_equal(draws, pose_rng(Pose(pose.position, -pose.quat_wxyz), 3).uniform(size=5))
+    assert not np.array_equal(draws, pose_rng(pose, 4).uniform(size=5))
+    moved = Pose(pose.position + [1e-4, 0.0, 0.0], pose.quat_wxyz)  # a tenth of a millimetre away
+    assert not np.array_equal(draws, pose_rng(moved, 3).uniform(size=5))
 
 
 def test_unreachable_target_raises_with_its_pose(panda):
