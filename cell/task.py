@@ -13,7 +13,8 @@ For every part, in assembly order, the robot
 6. inserts it in a straight line along the insertion direction into its target, slowly
    (:data:`INSERTION_SPEED_M_S`; where it slides along a neighbour: held off it, then sideways into contact; see
    :func:`_insertion`),
-7. opens the gripper, retreats in a straight line back along the approach axis, and opens to the next grasp.
+7. opens the gripper, retreats in a straight line back along the approach axis, and opens to the next grasp
+   (where a finger opening wider would meet a placed part there: at the start of the next approach instead).
 
 Finally it returns home. Straight segments are solved by inverse kinematics every :data:`CARTESIAN_STEP_M`
 (seeded from the previous point, so the joints move continuously) and checked with the collision model;
@@ -549,12 +550,19 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         if time.perf_counter() > deadline:
             raise TaskPlanningError("timeout", name, "planning", "the planning time budget ran out")
         # --- pick ------------------------------------------------------------------------------------------
-        world.hold(None, None, opening)
+        # the approach is checked with the hand open for the pick; where it could not open that wide after the
+        # last retreat (a finger would meet a placed part there), it moves there as it is and opens at the start
+        # of the approach, which kitting checked clear with the pick's opening
+        world.hold(None, None, grasp.opening_at_pick_m)
         tcp_pick = task.world_from_pick @ grasp.part_from_tcp
         grasp_q, approach_path, valid = _approach_to_pick(world, task, q)
+        world.hold(None, None, opening)
         free = _free_space_validity(world, q, approach_path[0])
         to_pick = world.transit(q, approach_path[0], free, name, "move to the pick")
         add_motion(name, "move to the pick", to_pick, free, None)
+        if opening < grasp.opening_at_pick_m - 1e-6:
+            program.steps.append(GripperStep(f"open for {name}", grasp.opening_at_pick_m, None))
+            opening = grasp.opening_at_pick_m
         add_motion(name, "approach", approach_path, valid, None)
         program.steps.append(GripperStep(f"{name}: close", max(0.0, grasp.width_m - SQUEEZE_M), name))
         # --- carry -----------------------------------------------------------------------------------------
@@ -629,11 +637,11 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         opening = tasks[index + 1].grasp.opening_at_pick_m if index + 1 < len(tasks) else 0.08
         if abs(opening - grasp.opening_m) > 1e-6:
             world.hold(None, None, max(opening, grasp.opening_m))
-            if not world.validity()(q):
-                raise TaskPlanningError("start_in_collision", name, "open for the next part",
-                                        "the hand cannot open wider after the retreat")
-            program.steps.append(GripperStep("open for the next part" if index + 1 < len(tasks) else "open",
-                                             opening, None))
+            if world.validity()(q):
+                program.steps.append(GripperStep("open for the next part" if index + 1 < len(tasks) else "open",
+                                                 opening, None))
+            else:  # a finger opening wider would meet a placed part: it opens at the next approach, or at home
+                opening = grasp.opening_m
         plan.parts.append(PlannedTask(name, grasp_q, place_q))
         if progress is not None:
             progress((index + 1) / len(tasks))
@@ -642,6 +650,10 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
     free = _free_space_validity(world, q, park)
     home = world.transit(q, park, free, "-", "return home")
     program.steps.append(MotionStep("return home", _timed(world, home, free, "-", "return home")))
+    if tasks and opening < 0.08 - 1e-6:
+        world.hold(None, None, 0.08)
+        if world.validity()(park):
+            program.steps.append(GripperStep("open", 0.08, None))
     return plan
 
 

@@ -1,6 +1,8 @@
 """The cell's task planner: how a part is brought into contact with its neighbours (held off the ones it slides
 along, slowly)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import trimesh
@@ -22,6 +24,7 @@ from cell.task import (
     _insertion_limits,
     _lead_in,
     _slot_entry,
+    plan_tasks,
 )
 from planning.collision import ConvexPart
 from planning.grasp import Grasp
@@ -333,3 +336,32 @@ def test_a_heavy_carry_is_timed_within_the_joint_torques(panda):
     world.hold(None, None, 0.08)
     assert world.torques().payload_kg == 0.0
     assert _timed(world, path, lambda q: True, "board", "test").duration == pytest.approx(fast.duration)
+
+
+def test_a_hand_that_cannot_open_wider_after_the_retreat_opens_at_the_next_approach(panda):
+    """The next part is picked with a wider opening than the last was released with. Where a finger opening that
+    wide at the end of the retreat would meet the released part (here a thin fin standing beside the fingers, which
+    the hand, ignoring its own part at the release, passes), the hand moves on as it is and opens at the start of
+    the next approach, which is clear, instead of failing the plan."""
+    down_tcp, up = [0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
+    block = trimesh.creation.box((0.03, 0.01, 0.03))
+    fin = trimesh.creation.box((0.02, 0.002, 0.1), trimesh.transformations.translation_matrix([0.0, 0.042, 0.05]))
+    parts = {"finned": ConvexPart.from_mesh("finned", trimesh.util.concatenate([block, fin])),
+             "next": ConvexPart.from_mesh("next", block)}
+    world = CellWorld(panda, Pose.identity(), {}, parts, np.random.default_rng(0))
+    narrow = Grasp(Pose([0.0, 0.0, 0.0], down_tcp), width_m=0.01, opening_m=0.02, score=1.0, centroid_score=1.0,
+                   contact_score=1.0)
+    wide = dataclasses.replace(narrow, pick_opening_m=0.07)
+    tasks = [PartTask("finned", Pose([0.35, -0.3, 0.115], up), Pose([0.5, 0.0, 0.115], up), narrow, DOWN, (), "pad"),
+             PartTask("next", Pose([0.35, 0.3, 0.115], up), Pose([0.5, -0.2, 0.115], up), wide, DOWN, (), "pad")]
+    steps = plan_tasks(world, tasks, np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])).program.steps
+    labels = [step.label for step in steps]
+    assert labels[labels.index("finned: retreat") + 1] == "next: move to the pick"  # not opened there
+    opening = labels.index("open for next")
+    assert labels[opening - 1] == "next: move to the pick" and labels[opening + 1] == "next: approach"
+    assert steps[opening].width_m == pytest.approx(0.07)
+    # the move there was planned with the hand as narrow as it was released, and it stays clear of the fin
+    _, q, _, _ = steps[opening - 1].timed.sample(100.0)
+    world.set_part_poses({"finned": tasks[0].world_from_target, "next": tasks[1].world_from_pick})
+    world.hold(None, None, narrow.opening_m)
+    assert all(world.validity()(config) for config in q)
