@@ -46,6 +46,9 @@ class ModelConfig:
     knn: int = 5  # phase-2 neighbours per part (nearest predicted centres)
     graph_iterations: int = 2  # message-passing iterations per phase
     gru_hidden: int = 512  # B-GRU hidden state
+    # Beyond the paper: the U-Net decoder takes each part's f_3d at every scale (a per-part bias on each up block,
+    # the same as concatenating the tiled f_3d there), not only at the bottleneck; the paper's design when false
+    condition_every_scale: bool = False
 
     def __post_init__(self):
         _positive(self, "image_size", "point_feature", "part_feature", "hidden", "image_feature",

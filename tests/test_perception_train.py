@@ -9,9 +9,14 @@ import sys
 import pytest
 import torch
 
+from perception.config import CONFIG_DIR, load_config
+from perception.data import ViewDataset, collate, object_files
 from perception.dataset.build import BuildConfig, build
+from perception.evaluate import load_model
+from perception.model import build_model
 from perception.train.checkpoint import CHECKPOINT, LOG, MODEL
 from perception.train.cli import main
+from perception.train.run import SCALE_CONDITIONING, load_initial_weights
 
 
 @pytest.fixture(scope="module")
@@ -91,6 +96,31 @@ def test_init_starts_from_given_weights_and_refuses_another_model(data, uninterr
                  "--init", str(gru / MODEL)]) == 2
     err = capsys.readouterr().err
     assert str(gru / MODEL) in err and "b_gru" in err
+
+
+def test_a_model_fine_tunes_into_the_decoder_conditioned_at_every_scale(data, uninterrupted, tmp_path):
+    """Weights trained with the paper's decoder (f_3d at the bottleneck only) start a model whose decoder takes
+    f_3d at every scale: its added weights start at zero, so it is the same function at first, and they train."""
+    config_file = tmp_path / "every_scale.toml"
+    text = (CONFIG_DIR / "tiny.toml").read_text()
+    config_file.write_text(text.replace("[model]\n", "[model]\ncondition_every_scale = true\n", 1))
+    paper, _, _ = load_model(uninterrupted / MODEL)
+    every = build_model(load_config(config_file).model)
+    load_initial_weights(every, uninterrupted / MODEL, "ours")
+    added = [k for k in every.state_dict() if k not in paper.state_dict()]
+    assert added and all(SCALE_CONDITIONING.fullmatch(k) for k in added)
+    sample = collate([ViewDataset(object_files([data], "train"))[0], ViewDataset(object_files([data], "train"))[1]])
+    every.eval()
+    with torch.no_grad():
+        assert torch.allclose(paper.segmentation(sample)["masks"], every.segmentation(sample)["masks"])
+    out = tmp_path / "every"
+    assert main(["--config", str(config_file), "--data", str(data), "--out", str(out), "--no-progress",
+                 "--init", str(uninterrupted / MODEL), "--stop-after", "1"]) == 0
+    after = torch.load(out / CHECKPOINT, map_location="cpu", weights_only=False)["model"]
+    assert all(after[k].abs().sum() > 0 for k in added)
+    # without the option, a file that lacks other weights is still refused
+    assert main(["--config", "tiny", "--data", str(data), "--out", str(tmp_path / "back"), "--no-progress",
+                 "--init", str(out / CHECKPOINT), "--stop-after", "1"]) == 2
 
 
 def test_baseline_trains(data, tmp_path):

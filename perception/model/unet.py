@@ -27,37 +27,46 @@ class SplitConv(nn.Module):
     """3x3 convolution of ``[x; skip[index]]`` (channel concatenation), batch norm and ReLU, with the skip half
     computed once per image."""
 
-    def __init__(self, cin: int, cskip: int, cout: int, kernel: int = 3):
+    def __init__(self, cin: int, cskip: int, cout: int, kernel: int = 3, cond_dim: int = 0):
         super().__init__()
         self.conv_x = nn.Conv2d(cin, cout, kernel, 1, kernel // 2, bias=False)
         self.conv_skip = nn.Conv2d(cskip, cout, kernel, 1, kernel // 2, bias=False) if cskip else None
+        # the part's conditioning vector tiled over the map and concatenated: constant per part, so its
+        # convolution is a per-part bias (exact away from the zero-padded border)
+        self.cond = nn.Linear(cond_dim, cout, bias=False) if cond_dim else None
+        if self.cond is not None:  # starts as the paper's decoder: weights trained without it can be fine-tuned
+            nn.init.zeros_(self.cond.weight)
         self.bn = nn.BatchNorm2d(cout)
 
-    def forward(self, x: torch.Tensor, skip: torch.Tensor | None, index: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, skip: torch.Tensor | None, index: torch.Tensor,
+                cond: torch.Tensor | None = None) -> torch.Tensor:
         y = self.conv_x(x)
         if self.conv_skip is not None:
             y = y + self.conv_skip(skip)[index]
+        if self.cond is not None:
+            y = y + self.cond(cond)[:, :, None, None]
         return F.relu(self.bn(y), inplace=True)
 
 
 class UpBlock(nn.Module):
     """Bilinear upsampling to the skip's size, conv over [up; skip], conv."""
 
-    def __init__(self, cin: int, cskip: int, cout: int):
+    def __init__(self, cin: int, cskip: int, cout: int, cond_dim: int = 0):
         super().__init__()
-        self.fuse = SplitConv(cin, cskip, cout)
+        self.fuse = SplitConv(cin, cskip, cout, cond_dim=cond_dim)
         self.conv = nn.Sequential(nn.Conv2d(cout, cout, 3, 1, 1, bias=False), nn.BatchNorm2d(cout),
                                   nn.ReLU(inplace=True))
 
-    def forward(self, x: torch.Tensor, skip: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, skip: torch.Tensor, index: torch.Tensor,
+                cond: torch.Tensor | None = None) -> torch.Tensor:
         x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
-        return self.conv(self.fuse(x, skip, index))
+        return self.conv(self.fuse(x, skip, index, cond))
 
 
 class ConditionalDecoder(nn.Module):
     """Decoder of one mask per (image, part) pair from the encoder pyramid and the part's conditioning vector."""
 
-    def __init__(self, encoder_channels: list[int], cond_dim: int, width: float):
+    def __init__(self, encoder_channels: list[int], cond_dim: int, width: float, every_scale: bool = False):
         super().__init__()
         widths = [channels(width, base) for base in (256, 128, 64, 32, 32)]
         bottleneck = encoder_channels[-1]
@@ -70,7 +79,7 @@ class ConditionalDecoder(nn.Module):
         skips = encoder_channels[-2::-1] + [3]  # stage 3, 2, 1, stem, then the image itself
         ups, previous = [], widths[0]
         for skip, cout in zip(skips, [*widths[1:], widths[-1]]):
-            ups.append(UpBlock(previous, skip, cout))
+            ups.append(UpBlock(previous, skip, cout, cond_dim if every_scale else 0))
             previous = cout
         self.ups = nn.ModuleList(ups)
         self.out = nn.Conv2d(previous, 1, 1)
@@ -81,7 +90,7 @@ class ConditionalDecoder(nn.Module):
         x = self.bottleneck_image(pyramid[-1])[index] + self.bottleneck_part(cond)[:, :, None, None]
         x = self.bottleneck_conv(F.relu(self.bottleneck_bn(x), inplace=True))
         for up, skip in zip(self.ups, pyramid[-2::-1]):
-            x = up(x, skip, index)
+            x = up(x, skip, index, cond)
         return self.out(x).squeeze(1)
 
 
@@ -94,7 +103,8 @@ class SegmentationNet(nn.Module):
         self.size = config.image_size
         self.encoder = ResNetEncoder(3, config.resnet_width, config.resnet_blocks)
         self.parts = PartEncoder(config)
-        self.decoder = ConditionalDecoder(self.encoder.channels, self.parts.out_dim, config.decoder_width)
+        self.decoder = ConditionalDecoder(self.encoder.channels, self.parts.out_dim, config.decoder_width,
+                                          config.condition_every_scale)
 
     def forward(self, batch: dict) -> dict:
         valid = batch["valid"]

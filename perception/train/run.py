@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import json
+import re
 import signal
 import sys
 import threading
@@ -39,6 +40,9 @@ from perception.train.checkpoint import (
 )
 from perception.train.loop import StageContext, StopRequested, TrainState, run_stage
 from perception.train.stages import stages_for
+
+# the weights model.condition_every_scale adds to the segmentation decoder (zero-initialised)
+SCALE_CONDITIONING = re.compile(r"segmentation\.decoder\.ups\.\d+\.fuse\.cond\.weight")
 
 # settings that may change between an interrupted run and its resumption (they do not change the result)
 OPERATIONAL = {"train.checkpoint_minutes", "train.num_workers", "train.threads", "data.paths", "data.categories"}
@@ -131,9 +135,15 @@ def load_initial_weights(model: torch.nn.Module, path: str | Path, kind: str) ->
             raise ConfigError(f"--init {path}: weight {name} does not fit this config's architecture "
                               f"({tuple(value.shape)} vs {tuple(own[name].shape) if name in own else 'absent'})")
     missing = sorted(set(own) - set(payload["model"]))
+    # the per-scale conditioning of model.condition_every_scale starts at zero, so a model trained without it is
+    # the same function with it, and can be fine-tuned into it
+    added = [name for name in missing if SCALE_CONDITIONING.fullmatch(name)]
+    missing = [name for name in missing if name not in added]
     if missing:
         raise ConfigError(f"--init {path} lacks weight {missing[0]} of this config's architecture")
-    model.load_state_dict({k: v.to(own[k].dtype) for k, v in payload["model"].items()})
+    weights = {k: v.to(own[k].dtype) for k, v in payload["model"].items()}
+    weights.update({name: torch.zeros_like(own[name]) for name in added})
+    model.load_state_dict(weights)
 
 
 def _run_stages(config, out, kind, max_steps, stop_after, progress, dist, stop_flag, init=None) -> dict:
