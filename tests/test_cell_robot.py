@@ -88,7 +88,7 @@ def test_a_swivel_keeps_the_tcp_and_moves_the_elbow(panda):
     a swing past a joint limit gives None."""
     target = Pose([0.5, 0.0, 0.3], [0.0, 1.0, 0.0, 0.0])  # top-down, in front of the base
     q = panda.inverse_tcp(target, np.random.default_rng(0), seed_q=np.array(load_scene().robot.home_q))
-    elbow = panda.forward_tcp(q) and _link_position(panda, q, 4)
+    elbow = _link_position(panda, q, 4)
     moved = []
     for angle in (2.0, -2.0):
         swung = panda.swivel(q, target, angle)
