@@ -220,8 +220,8 @@ class _KitReach(Reach):
         # elsewhere: the first pose's solution swung about the shoulder-wrist line (its elbow elsewhere), then
         # random starts
         swivels: list[np.ndarray] | None = None
-        attempts = CHAIN_ATTEMPTS + (len(SWIVELS_RAD) if elsewhere else 0)
-        for attempt in range(attempts):
+        attempts, attempt = CHAIN_ATTEMPTS, -1  # each swing found adds an attempt (a target out of reach adds none)
+        while (attempt := attempt + 1) < attempts:
             configurations = []
             if attempt == 0:
                 previous = seed
@@ -239,6 +239,7 @@ class _KitReach(Reach):
                     if k == 0 and elsewhere and swivels is None:
                         swivels = [q for angle in SWIVELS_RAD
                                    if (q := self.panda.swivel(previous, pose, angle)) is not None]
+                        attempts += len(swivels)
             except IKError:
                 continue
             self.chain_unreached = False
