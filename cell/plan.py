@@ -50,12 +50,9 @@ from planning.robot_collision import LINK_CLEARANCE_M, RobotCollisionChecker
 from planning.sequence import GraspChecker, plan_assembly_sequence
 
 PANDA_REACH_M = 0.855  # from the shoulder (joint 2) to the flange, fully stretched
-CHAIN_ATTEMPTS = 3  # inverse-kinematics attempts for a chain of poses, each from where the last left the arm
-# where another elbow is sought, first the first solution swung along the arm's self-motion by these joint-space
-# path lengths (rad; joints 1 and 3 turn against each other, so the forearm moves about 5 cm per radian), then
-# random starts. In a probe (a box in the kit where the first solution's forearm is, 20 seeds) two random starts
-# found another elbow for 11 seeds, twelve for 19 but made kitting about twice as slow; these swings for all 20
-SWIVELS_RAD = (2.0, -2.0, 3.0, -3.0)
+# inverse-kinematics attempts for a chain of poses, each from where the last left the arm or, where another elbow is
+# sought, from a random start (each query's own draws: cell.robot.pose_rng)
+CHAIN_ATTEMPTS = 3
 RELEASE_SEEDS = 4  # arm configurations at earlier releases that seed a release out of reach from elsewhere
 SHOULDER_HEIGHT_M = 0.333
 HAND_LENGTH_M = 0.21  # flange to the TCP between the fingertips
@@ -209,37 +206,22 @@ class _KitReach(Reach):
         """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its (ignore, hand_ignore)
         sets (see :meth:`RobotCollisionChecker.first_invalid`; no collision check when ``checks`` is None) and,
         where ``held``, holding the ``load``; or None. The first attempt starts from ``seed``; the others from where
-        the last one left the arm, or, ``elsewhere``, from the first pose's solution swung along the arm's
-        self-motion (:data:`SWIVELS_RAD`), then from random configurations (the arm is redundant: another elbow may
-        clear what the first one meets). The first pose's inverse kinematics uses ``first_ik`` (default:
+        the last one left the arm, or, ``elsewhere``, from random configurations (the arm is redundant: another
+        elbow may clear what the first one meets). The first pose's inverse kinematics uses ``first_ik`` (default:
         the planner's settings, few restarts), the others start from the pose before."""
         self.chain_unreached = True  # no attempt found inverse kinematics for every pose
         if not all(self._within_reach(pose) for pose in poses):
             return None
         rng = pose_rng(poses[0], self.seed)
-        # elsewhere: the first pose's solution swung about the shoulder-wrist line (its elbow elsewhere), then
-        # random starts
-        swivels: list[np.ndarray] | None = None
-        attempts, attempt = CHAIN_ATTEMPTS, -1  # each swing found adds an attempt (a target out of reach adds none)
-        while (attempt := attempt + 1) < attempts:
+        for attempt in range(CHAIN_ATTEMPTS):
             configurations = []
-            if attempt == 0:
-                previous = seed
-            elif not elsewhere:
-                previous = None
-            elif swivels:
-                previous = swivels.pop(0)
-            else:
-                previous = rng.uniform(self.panda.lower_limits, self.panda.upper_limits)
+            previous = (seed if attempt == 0 else rng.uniform(self.panda.lower_limits, self.panda.upper_limits)
+                        if elsewhere else None)
             try:
                 for k, pose in enumerate(poses):
                     settings = (first_ik or self.settings) if k == 0 else IKSettings(restarts=1)
                     previous = self.panda.inverse_tcp(pose, rng, seed_q=previous, settings=settings)
                     configurations.append(previous)
-                    if k == 0 and elsewhere and swivels is None:
-                        swivels = [q for angle in SWIVELS_RAD
-                                   if (q := self.panda.swivel(previous, pose, angle)) is not None]
-                        attempts += len(swivels)
             except IKError:
                 continue
             self.chain_unreached = False

@@ -149,29 +149,6 @@ class Panda:
             q = np.clip(q + step, self.lower_limits, self.upper_limits)
         return q
 
-    def swivel(self, q: np.ndarray, world_from_tcp: Pose, angle_rad: float, step_rad: float = 0.1) -> np.ndarray | None:
-        """Another arm configuration at the same TCP pose: ``q`` (a solution for ``world_from_tcp``) moved along the
-        arm's self-motion (the null space of the TCP Jacobian: the elbow swings about the shoulder-wrist line) for
-        about ``|angle_rad|`` of joint-space path, the sign choosing the way (positive: joint 3 increasing at first),
-        each step polished back onto the pose. None where it would cross a joint limit or drift off the pose."""
-        x = np.asarray(q, dtype=np.float64).copy()
-        steps = max(1, int(np.ceil(abs(angle_rad) / step_rad)))
-        direction = None
-        for _ in range(steps):
-            null = np.linalg.svd(self.tcp_jacobian(x))[2][-1]  # (7,) unit: the TCP does not move along it
-            if direction is None:
-                null = null if null[2] >= 0.0 else -null
-                null = null * np.sign(angle_rad)
-            elif null @ direction < 0.0:
-                null = -null  # keep going the same way
-            direction = null
-            x = self.polish_tcp(x + direction * (abs(angle_rad) / steps), world_from_tcp, steps=3)
-            if not self.within_limits(x):
-                return None
-        x = self.polish_tcp(x, world_from_tcp)
-        dp, da = self.forward_tcp(x).distance(world_from_tcp)
-        return x if dp <= 2e-5 and da <= 2e-4 else None
-
     def inverse_tcp(self, world_from_tcp: Pose, rng: np.random.Generator, seed_q: np.ndarray | None = None,
                     settings: IKSettings = IKSettings()) -> np.ndarray:
         """Arm configuration placing the TCP at ``world_from_tcp``; raises :class:`IKError`.

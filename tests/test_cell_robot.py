@@ -83,30 +83,6 @@ def test_the_random_starts_for_a_target_follow_from_its_pose_and_the_seed_alone(
     assert not np.array_equal(draws, pose_rng(moved, 3).uniform(size=5))
 
 
-def test_a_swivel_keeps_the_tcp_and_moves_the_elbow(panda):
-    """Along the arm's self-motion the TCP stays put (to the IK tolerance) while the forearm swings to either side;
-    a swing past a joint limit gives None."""
-    target = Pose([0.5, 0.0, 0.3], [0.0, 1.0, 0.0, 0.0])  # top-down, in front of the base
-    q = panda.inverse_tcp(target, np.random.default_rng(0), seed_q=np.array(load_scene().robot.home_q))
-    elbow = _link_position(panda, q, 4)
-    moved = []
-    for angle in (2.0, -2.0):
-        swung = panda.swivel(q, target, angle)
-        assert swung is not None and panda.within_limits(swung)
-        dp, da = panda.forward_tcp(swung).distance(target)
-        assert dp <= 2e-5 and da <= 2e-4
-        moved.append(_link_position(panda, swung, 4) - elbow)
-    assert min(np.linalg.norm(m) for m in moved) > 0.02  # the elbow moved by centimetres
-    assert moved[0] @ moved[1] < 0  # to either side
-    assert panda.swivel(q, target, 40.0) is None  # joints 1 and 3 run into their limits
-
-
-def _link_position(panda, q, link):
-    panda.set_arm(q)
-    return np.array(panda.pb.getLinkState(panda.body, link, computeForwardKinematics=True,
-                                          physicsClientId=panda.cid)[4])
-
-
 def test_unreachable_target_raises_with_its_pose(panda):
     with pytest.raises(IKError, match="no inverse kinematics for the TCP at Pose"):
         panda.inverse_tcp(Pose([2.0, 0.0, 0.5], [1, 0, 0, 0]), np.random.default_rng(1))
