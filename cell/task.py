@@ -202,10 +202,9 @@ class CellWorld:
                 return np.asarray(hint_q, dtype=np.float64)
         last_error = "no solution"
         collided = None
+        rng = pose_rng(world_from_tcp, self.ik_seed)
         for attempt in range(IK_ATTEMPTS):
             try:
-                if attempt == 0:
-                    rng = pose_rng(world_from_tcp, self.ik_seed)
                 q = self.panda.inverse_tcp(world_from_tcp, rng, seed_q=seed_q if attempt == 0 else None,
                                            settings=self.ik_settings)
             except IKError as exc:
