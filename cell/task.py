@@ -42,6 +42,7 @@ from cell.program import GripperStep, MotionStep, Program
 from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS, IKError, IKSettings, Panda, pose_rng
 from planning.collision import ConvexPart, shrunk, signed_distance
 from planning.grasp import APPROACH_M, Grasp
+from planning.gripper import MAX_OPENING_M
 from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path, straight_line_valid
 from planning.payload import JointTorques, MassProperties, carry_limits
 from planning.pose import Pose
@@ -529,7 +530,7 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
     ``world`` must hold every part at its pick pose on entry (``set_part_poses``); ``progress(fraction)`` is
     called after each part; past ``deadline`` (``time.perf_counter()``) it gives up.
     """
-    program = Program(initial_width_m=tasks[0].grasp.opening_at_pick_m if tasks else 0.08)
+    program = Program(initial_width_m=tasks[0].grasp.opening_at_pick_m if tasks else MAX_OPENING_M)
     plan = TaskPlan(program)
     poses = {t.part: t.world_from_pick for t in tasks}
     world.set_part_poses(poses)
@@ -633,7 +634,7 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
                                       "retreat")
         add_motion(name, "retreat", retreat, valid, None)
         q = retreat[-1]
-        opening = tasks[index + 1].grasp.opening_at_pick_m if index + 1 < len(tasks) else 0.08
+        opening = tasks[index + 1].grasp.opening_at_pick_m if index + 1 < len(tasks) else MAX_OPENING_M
         if abs(opening - grasp.opening_m) > 1e-6:
             world.hold(None, None, max(opening, grasp.opening_m))
             if world.validity()(q):
@@ -649,10 +650,10 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
     free = _free_space_validity(world, q, park)
     home = world.transit(q, park, free, "-", "return home")
     program.steps.append(MotionStep("return home", _timed(world, home, free, "-", "return home")))
-    if tasks and opening < 0.08 - 1e-6:
-        world.hold(None, None, 0.08)
+    if tasks and opening < MAX_OPENING_M - 1e-6:
+        world.hold(None, None, MAX_OPENING_M)
         if world.validity()(park):
-            program.steps.append(GripperStep("open", 0.08, None))
+            program.steps.append(GripperStep("open", MAX_OPENING_M, None))
     return plan
 
 
