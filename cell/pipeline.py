@@ -177,7 +177,7 @@ class Pipeline:
 
         bars = []
 
-        def on_stage(name: str, jig_turn_deg: float) -> None:
+        def on_stage(name: str, jig_turn_deg: float, jig_slide_m: float) -> None:
             for bar in bars:
                 bar.close()
             bars.clear()
@@ -185,6 +185,7 @@ class Pipeline:
             detail = {"kitting": "stable poses on pedestals, a grasp valid at the pick and at the target",
                       "motion": "OMPL paths, straight approaches and insertions, Ruckig timing"}[name]
             turned = f"jig turned {jig_turn_deg:.0f} deg, " if jig_turn_deg else ""
+            turned += f"jig slid {100 * jig_slide_m:.0f} cm toward the robot, " if jig_slide_m else ""
             self.console.say(f"[{index}/8] {name}: {how}{turned}{detail}")
             if name == "motion":
                 bars.append(self.console.bar(len(build.parts), "part"))
@@ -217,6 +218,7 @@ class Pipeline:
         self.world_from_target = plan.world_from_assembly @ build_from_target
         self.report["world_from_assembly"] = pose_json(self.world_from_target)
         self.report["jig_turn_deg"] = plan.jig_turn_deg
+        self.report["jig_slide_m"] = plan.jig_slide_m
         self.report["upside_down"] = upside_down
         if upside_down:
             self.report["world_from_build"] = pose_json(plan.world_from_assembly)

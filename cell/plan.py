@@ -67,6 +67,7 @@ class PlanningFailed(RuntimeError):
         super().__init__(message)
         self.stage, self.part = stage, part
         self.seconds: dict[str, float] = {}  # time spent before failing, per stage
+        self.beyond_reach = False  # the part failed at its target only for want of inverse kinematics
 
 
 @dataclass
@@ -86,6 +87,7 @@ class CellPlan:
     joint_limits: tuple[np.ndarray, np.ndarray]  # lower, upper (rad), from the robot's URDF
     seconds: dict[str, float] = field(default_factory=dict)
     jig_turn_deg: float = 0.0  # how far the jig was turned from the scene's pose to make the plan work
+    jig_slide_m: float = 0.0  # how far the jig was slid toward the robot from the scene's pose (m)
     sequence: SequenceResult | None = None  # the order planned with: the given one, or one planned for the arm
 
     @property
@@ -181,6 +183,7 @@ class _KitReach(Reach):
         self.chain_unreached = False  # the last _chain found no inverse kinematics (rather than only collisions)
         self.release_seeds: list[np.ndarray] = []  # the latest arm configurations found at a release
         self.heavy_parts: dict[str, int] = {}  # part -> how many of its grasps failed at the target for its weight
+        self.reached_at_target: dict[str, bool] = {}  # part -> whether any of its grasps had IK at its target
 
     def _world(self, kit: list[tuple[trimesh.Trimesh, Pose]], jig_parts: list[str]) -> dict:
         out = dict(self.table)
@@ -270,23 +273,33 @@ class _KitReach(Reach):
             # the part is in the hand at the release and the pre-place, not at the retreat's end
             checks, load = list(self._AT_TARGET_IGNORES), self._load(part, grasp)
             found = self._chain(poses, self.home_q, checks, load, (True, True, False), elsewhere=bool(kit))
+            reached = not self.chain_unreached
             if found is None and not kit:  # harder: other elbows, and more starts for the release (the first
                 # attempts start at home and near each other)
                 start = pose_rng(poses[0], self.seed + 1).uniform(self.panda.lower_limits, self.panda.upper_limits)
                 found = self._chain(poses, start, checks, load, (True, True, False), elsewhere=True,
                                     first_ik=IKSettings())
+                reached = reached or not self.chain_unreached
                 # at the edge of the reach (cabinet_13's side panel), random starts rarely converge: from the
                 # releases found for other grasps and parts, nearby
                 for seed in (self.release_seeds[::-1] if found is None and self.chain_unreached else []):
                     found = self._chain(poses, seed, checks, load, (True, True, False), first_ik=IKSettings())
+                    reached = reached or not self.chain_unreached
                     if found is not None or not self.chain_unreached:
                         break
+            if not kit:
+                self.reached_at_target[part] = self.reached_at_target.get(part, False) or reached
             if found is not None:
                 self.release_seeds = (self.release_seeds + [found[0]])[-RELEASE_SEEDS:]
             self.at_target_cache[key] = None if found is None else tuple(found)
             if found is None and self.too_heavy > refused and not kit:
                 self.heavy_parts[part] = self.heavy_parts.get(part, 0) + 1
         return self.at_target_cache[key]
+
+    def beyond_reach(self, part: str) -> bool:
+        """Whether every grasp of ``part`` tried at its target failed for want of inverse kinematics (the release,
+        pre-place and retreat poses together), none for a collision or the part's weight."""
+        return self.reached_at_target.get(part) is False
 
     def weight_words(self, part: str) -> str:
         """Why ``part``'s grasps failed at its target for its weight, in words ("" when none did)."""
@@ -354,16 +367,25 @@ class _KitReach(Reach):
 
 
 JIG_TURNS_DEG = (0.0, 90.0, 270.0, 180.0)
+# where a part's grasps are all beyond the arm's reach at its target, the jig at that turn slides this far toward
+# the robot and is tried again (cabinet_3's far side panel: its grasps' flanges 0.81-0.86 m from the shoulder, at
+# the edge of the 0.855 m reach, had no inverse kinematics; 6 cm nearer, 9 of them had)
+JIG_SLIDE_M = 0.06
 MOTION_RETRIES = 4  # motion planning restarts with a failing part's next grasp at most this often
 DEFAULT_TIME_BUDGET_S = 180.0  # the jig is turned about +z until the parts can be kitted and placed
 REORDERS = 3  # a part the arm cannot place among the parts before it moves ahead of them, at most this often
 
 
-def jig_turned(scene: Scene, turn_deg: float) -> Scene:
-    """``scene`` with its jig (the assembly frame) turned by ``turn_deg`` about the world's +z axis."""
+def jig_placed(scene: Scene, turn_deg: float, slide_m: float = 0.0) -> Scene:
+    """``scene`` with its jig (the assembly frame) turned by ``turn_deg`` about the world's +z axis and slid
+    ``slide_m`` (m) horizontally toward the robot's base."""
     half = np.radians(turn_deg) / 2
     pose = scene.fixture.world_from_assembly
-    turned = Pose(pose.position, [np.cos(half), 0.0, 0.0, np.sin(half)]) @ Pose([0, 0, 0], pose.quat_wxyz)
+    position = np.array(pose.position, dtype=np.float64)
+    if slide_m:
+        away = position[:2] - scene.robot.world_from_base.position[:2]
+        position[:2] -= slide_m * away / np.linalg.norm(away)
+    turned = Pose(position, [np.cos(half), 0.0, 0.0, np.sin(half)]) @ Pose([0, 0, 0], pose.quat_wxyz)
     return dataclasses.replace(scene, fixture=dataclasses.replace(scene.fixture, world_from_assembly=turned))
 
 
@@ -371,14 +393,16 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
               motion: MotionSettings | None = None, progress=None, on_stage=None,
               time_budget_s: float = DEFAULT_TIME_BUDGET_S) -> CellPlan:
     """Kitting layout, pick-and-place tasks and the timed program for ``assembly`` in ``scene``; raises
-    :class:`PlanningFailed` naming the stage and the part. ``on_stage(name, jig_turn_deg)`` is called as the
-    kitting and the motion stages begin (for each turn of the jig tried); ``progress(fraction)`` after each part's
-    motions are planned. ``CellPlan.seconds`` holds the time of kitting, motion (OMPL, IK, checks) and timing
-    (Ruckig, with its collision re-check).
+    :class:`PlanningFailed` naming the stage and the part. ``on_stage(name, jig_turn_deg, jig_slide_m)`` is
+    called as the kitting and the motion stages begin (for each placement of the jig tried); ``progress(fraction)``
+    after each part's motions are planned. ``CellPlan.seconds`` holds the time of kitting, motion (OMPL, IK,
+    checks) and timing (Ruckig, with its collision re-check).
 
     Where kitting or motion fail with the jig as the scene places it, the jig is turned by 90, 270 and 180
-    degrees (an assembly's grasps may only be reachable from one side); ``CellPlan.world_from_assembly`` says
-    where it ended up, and a failure names every turn tried. Planning gives up after ``time_budget_s``."""
+    degrees (an assembly's grasps may only be reachable from one side); where a part's grasps are all beyond the
+    arm's reach at its target, the jig at that turn is first slid :data:`JIG_SLIDE_M` toward the robot.
+    ``CellPlan.world_from_assembly`` says where it ended up, and a failure names every placement tried. Planning
+    gives up after ``time_budget_s``."""
     if not sequence.success:
         raise PlanningFailed("sequence", f"no assembly sequence: {sequence.reason}")
     deadline = time.perf_counter() + time_budget_s
@@ -386,31 +410,38 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
         return _plan_turns(scene, assembly, sequence, seed, motion, progress, on_stage, deadline, rests)
 
 
+def _placement_words(turn_deg: float, slide_m: float) -> str:
+    return f"turned {turn_deg:.0f} deg" + (f", slid {100 * slide_m:.0f} cm toward the robot" if slide_m else "")
+
+
 def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int,
                 motion: MotionSettings | None, progress, on_stage, deadline: float,
                 rests: PhysicsRestCheck) -> CellPlan:
     failures = []
     spent: dict[str, float] = {}
-    for turn in JIG_TURNS_DEG:
-        if failures and time.perf_counter() > deadline:
+    too_large = False  # no placement of the jig makes the kitting ring larger
+    for turn, slide in ((turn, slide) for turn in JIG_TURNS_DEG for slide in (0.0, JIG_SLIDE_M)):
+        if too_large or failures and time.perf_counter() > deadline:
             break
+        if slide and not (failures[-1][0] == turn and failures[-1][2].beyond_reach):
+            continue  # slid only where the arm did not reach a part's target at this turn
         try:
-            stage = None if on_stage is None else (lambda name, _turn=turn: on_stage(name, _turn))
-            plan = _plan_with_jig(jig_turned(scene, turn), assembly, sequence, seed, motion, progress, stage,
-                                  deadline, rests)
+            stage = None if on_stage is None else (
+                lambda name, _turn=turn, _slide=slide: on_stage(name, _turn, _slide))
+            plan = _plan_with_jig(jig_placed(scene, turn, slide), assembly, sequence, seed, motion, progress,
+                                  stage, deadline, rests)
         except PlanningFailed as exc:
-            failures.append((turn, exc))
+            failures.append((turn, slide, exc))
             for name, value in getattr(exc, "seconds", {}).items():
                 spent[name] = spent.get(name, 0.0) + value
-            if exc.stage == "kitting" and "too large for this cell" in str(exc):
-                break  # no turn makes the kitting ring larger
+            too_large = exc.stage == "kitting" and "too large for this cell" in str(exc)
             continue
         for name, value in spent.items():
             plan.seconds[name] = plan.seconds.get(name, 0.0) + value
-        plan.jig_turn_deg = turn
+        plan.jig_turn_deg, plan.jig_slide_m = turn, slide
         return plan
-    first_turn, first = failures[0]
-    tried = "; ".join(f"turned {turn:.0f} deg: {exc}" for turn, exc in failures[1:])
+    _, _, first = failures[0]
+    tried = "; ".join(f"{_placement_words(turn, slide)}: {exc}" for turn, slide, exc in failures[1:])
     message = str(first) + (f" (also tried the jig {tried})" if tried else "")
     error = PlanningFailed(first.stage, message, first.part)
     error.seconds = spent
@@ -504,9 +535,11 @@ class _KitFailed(Exception):
         self.kit, self.error = kit, error
 
 
-def _kitting_failed(exc: KittingError, started: float, context: str = "") -> PlanningFailed:
+def _kitting_failed(exc: KittingError, started: float, context: str = "",
+                    beyond_reach: bool = False) -> PlanningFailed:
     error = PlanningFailed("kitting", f"{exc} ({context})" if context else str(exc), exc.part)
     error.seconds = {"kitting": time.perf_counter() - started}
+    error.beyond_reach = beyond_reach
     return error
 
 
@@ -552,17 +585,21 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
                 break
             except _KitFailed as failed:
                 exc = failed.error
+                beyond = exc.kind == NO_GRASP_AT_TARGET and bool(exc.part) and failed.kit.reach.beyond_reach(exc.part)
+                if beyond:
+                    exc = KittingError(f"{exc}: each grasp tried there is beyond the arm's reach", exc.kind,
+                                       exc.part)
                 context = f"with the order planned again {reorder} time(s) for the arm" if reorder else ""
                 if exc.kind != NO_GRASP_AT_TARGET or reorder == REORDERS or time.perf_counter() > deadline:
-                    raise _kitting_failed(exc, started, context) from exc
+                    raise _kitting_failed(exc, started, context, beyond) from exc
                 blockers = failed.kit.blockers(exc.part)
                 if not blockers:
-                    raise _kitting_failed(exc, started, context) from exc
+                    raise _kitting_failed(exc, started, context, beyond) from exc
                 after[exc.part] = after.get(exc.part, frozenset()) | blockers
                 again = plan_assembly_sequence(assembly, seed, grasp_check=_PlacedBefore(hand_check, after))
                 if not again.success:
                     raise _kitting_failed(exc, started, f"the arm meets {', '.join(sorted(blockers))} there, and "
-                                          f"no order places it before them: {again.reason}") from exc
+                                          f"no order places it before them: {again.reason}", beyond) from exc
                 sequence = again
         slots, insertion, touches = kit.slots, kit.insertion, kit.touches
         seconds["kitting"] = time.perf_counter() - started

@@ -5,7 +5,7 @@
     {"success": bool, "exit_code": int, "failure": null | {"stage", "part", "message"},
      "inputs": {"image", "parts", "poses", "scene", "seed", "units"},
      "stages": {"perception": seconds, ...},
-     "trajectory_duration_s": float, "world_from_assembly": pose, "jig_turn_deg": float,
+     "trajectory_duration_s": float, "world_from_assembly": pose, "jig_turn_deg": float, "jig_slide_m": float,
      "upside_down": bool, "world_from_build": pose (only when upside down),
      "parts": [{"name", "order", "target_assembly_from_part", "target_world_from_part",
                 "repair": {"translation_m", "rotation_deg"}, "insertion_direction" (the frame built on the jig,
