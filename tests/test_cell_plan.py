@@ -5,7 +5,7 @@ import numpy as np
 import trimesh
 
 from cell.bullet import BulletClient
-from cell.plan import HAND_CLEARANCE_M, _KitReach, grasps_clear_at_target
+from cell.plan import HAND_CLEARANCE_M, _KitReach, grasps_clear_at_target, jig_placed
 from cell.robot import Panda
 from cell.scene import load_scene
 from planning.grasp import Grasp, feasible_grasps
@@ -77,6 +77,41 @@ def test_the_arm_configurations_at_a_target_do_not_depend_on_the_queries_before(
     alone, after_others = configurations(0), configurations(3)
     assert alone is not None
     assert np.allclose(np.array(alone), np.array(after_others), atol=1e-9)
+
+
+def test_a_target_beyond_the_arm_is_told_apart_from_one_the_arm_meets():
+    """A board whose grasps lie beyond the arm's reach is flagged as such (the cell then slides the jig toward the
+    robot); one within reach but blocked by a box where the arm must be is not."""
+    scene = load_scene()
+    top_z = scene.table.top_z
+    far = Pose([0.95, 0.0, top_z + 0.15], [1.0, 0.0, 0.0, 0.0])  # the flange ~0.97 m from the shoulder
+    near = Pose([0.55, 0.0, top_z + 0.15], [1.0, 0.0, 0.0, 0.0])
+    grasp = Grasp(Pose([0.0, 0.0, 0.038], DOWN_TCP), width_m=0.02, opening_m=0.04, score=1.0, centroid_score=1.0,
+                  contact_score=1.0)
+    down = np.array([0.0, 0.0, -1.0])
+    wall = trimesh.creation.box((0.6, 0.6, 0.02))  # lying over the board's target, where the hand must be
+    with BulletClient() as client:
+        panda = Panda(client, scene.robot.world_from_base)
+        reach = _KitReach(panda, scene, 0, np.array(scene.robot.home_q),
+                          {"far": far, "near": near, "wall": Pose([0.55, 0.0, top_z + 0.3], [1.0, 0.0, 0.0, 0.0])},
+                          {"far": BOARD, "near": BOARD, "wall": wall}, ["wall", "far", "near"],
+                          {"far": down, "near": down, "wall": down})
+        assert reach.at_target("far", grasp) is None and reach.beyond_reach("far")
+        assert reach.at_target("near", grasp) is None and not reach.beyond_reach("near")
+        assert not reach.beyond_reach("wall")  # never asked
+
+
+def test_the_jig_slides_toward_the_robot_and_turns_about_its_own_origin():
+    scene = load_scene()
+    placed = jig_placed(scene, 90.0, 0.06).fixture.world_from_assembly
+    start = scene.fixture.world_from_assembly.position
+    base = scene.robot.world_from_base.position
+    assert np.isclose(placed.position[2], start[2])
+    moved = np.asarray(placed.position[:2]) - start[:2]
+    assert np.isclose(np.linalg.norm(moved), 0.06)
+    toward_base = (base[:2] - start[:2]) / np.linalg.norm(base[:2] - start[:2])
+    assert np.isclose(moved @ toward_base, 0.06)
+    assert np.allclose(placed.rotation @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-9)  # a quarter turn about +z
 
 
 def test_a_grasp_at_the_target_clears_the_whole_insertion():
