@@ -94,6 +94,12 @@ MAX_GROUND_POSES = 7  # ... of which this many (the best for picking from above)
 SCORED_GRASPS = 20  # the grasps (best at the target first) that rank the rest poses
 FROM_ABOVE = np.cos(np.radians(30.0))  # a pick from above: the approach within 30 degrees of straight down
 LEVEL_FINGERS = np.sin(np.radians(10.0))  # at the pick, grasps closing within 10 degrees of level come first
+# a part standing with its centre of mass higher than this many times its foot's reach from it, across the fingers'
+# closing axis, tips over its foot when a hand approaching on a slant closes on it (chair_5's back slat, standing
+# 24 cm tall on a 25 mm foot, tipped 4.9 degrees under fingers coming 30 degrees off vertical and was carried so)
+TIPPING_HEIGHT_RATIO = 3.0
+SLANTED_APPROACH = np.cos(np.radians(10.0))  # an approach more than 10 degrees off straight down is slanted
+FOOT_M = 0.002  # a part's foot: its points within this height of its lowest point
 GRASP_OPTIONS = 4  # grasps (with arm configurations) kept per part, so a later neighbour may spoil some of them
 LAYOUT_RETRIES = 2  # parts that find no place are laid out first in a new try of the layout, at most this many
 
@@ -945,8 +951,9 @@ class _Layout:
         """The slot for ``name`` here, its grasp options and the earlier slots' options that survive it; None
         when no grasp works here or some earlier slot would keep no option."""
         own = [] if pedestal is None else [(pedestal.mesh(), pedestal.world_from_pedestal)]
+        tips = _tips_under(mesh, world_from_part)
         at_pick = {_grasp_key(g) for g in _pickable(grasps, world_from_part, own, self.area.table_z_m,
-                                                     self.obstacles_at_pick(name, corners))}
+                                                     self.obstacles_at_pick(name, corners)) if not tips(g)}
         # the support (own pedestal, or the board under it) is left out: the grasp check covered the hand
         present = [o for slot in self.slots if base is None or slot.part != base.part
                    for o in self._bodies(slot, name)]
@@ -1083,6 +1090,32 @@ def _finger_tilt(world_from_part_rotation: np.ndarray, grasp: Grasp) -> float:
 def _slanted(world_from_part: Pose, grasp: Grasp) -> bool:
     """Whether the fingers close neither level nor vertically at this pose of the part."""
     return LEVEL_FINGERS < _finger_tilt(world_from_part.rotation, grasp) < np.cos(np.radians(10.0))
+
+
+def _tips_under(mesh: trimesh.Trimesh, world_from_part: Pose):
+    """``tips(grasp)``: whether the part, standing at ``world_from_part``, would tip over its foot as the hand of
+    ``grasp`` closes on it: the approach is slanted (:data:`SLANTED_APPROACH`) and, along the horizontal direction
+    across the closing axis (the fingers' flat pads leave a turn about that axis free; chocks hold a standing board
+    along it), the foot reaches less than 1 / :data:`TIPPING_HEIGHT_RATIO` of the centre of mass's height from
+    it."""
+    rotation = world_from_part.rotation
+    points = mesh.vertices @ rotation.T
+    low = float(points[:, 2].min())
+    foot = points[points[:, 2] <= low + FOOT_M]
+    com = rotation @ _centre_of_mass(mesh)
+    height = float(com[2]) - low
+
+    def tips(grasp: Grasp) -> bool:
+        tcp = rotation @ grasp.part_from_tcp.rotation
+        if -float(tcp[2, 2]) >= SLANTED_APPROACH:
+            return False
+        across = np.cross(tcp[:, 1], [0.0, 0.0, 1.0])
+        if np.linalg.norm(across) < 1e-6:
+            return False  # the fingers close vertically: not a standing part's grasp
+        along = (foot - com) @ (across / np.linalg.norm(across))
+        return min(float(along.max()), float(-along.min())) * TIPPING_HEIGHT_RATIO < height
+
+    return tips
 
 
 def _picks_from_above(grasps: Sequence[Grasp], rest_from_part: np.ndarray) -> int:

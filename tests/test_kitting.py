@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from planning.assembly import read_assembly
 from planning.grasp import APPROACH_M, Grasp, feasible_grasps
@@ -17,6 +18,7 @@ from planning.kitting import (
     Reach,
     _pickable,
     _polygons_overlap,
+    _tips_under,
     clear_at_pick,
     plan_kitting,
     stable_rest_poses,
@@ -334,3 +336,35 @@ def test_a_board_standing_between_chocks_is_picked_with_the_hand_opened_for_its_
                         lambda name, grasp: True, AREA, target_rotations={"block": np.eye(3)})[0]
     assert not firm.pedestal.chocks and firm.world_from_part.rotation[2, 2] > 0.999
     assert firm.grasp.opening_m == firm.grasp.opening_at_pick_m == pytest.approx(firm.grasp.width_m + GRASP_CLEARANCE_M)
+
+
+def test_a_part_standing_on_a_narrow_foot_is_not_picked_by_a_hand_coming_on_a_slant():
+    """A slat standing on its end (24 cm tall on a 25 x 7 mm foot) tips over its foot when fingers coming 30 degrees
+    off vertical close across its thickness (chair_5's back slat, carried 4.9 degrees off): that grasp is refused,
+    the same grasp from straight above is not, and neither is a slanted one on a board standing on its long edge
+    (its foot reaches far along the direction it could tip in)."""
+    slat = trimesh.creation.box((0.24, 0.025, 0.0074))  # long x, wide y, thin z
+    standing = Pose([0.5, 0.3, 0.24], Rotation.from_euler("y", -90, degrees=True).as_quat(scalar_first=True))
+    assert np.allclose(standing.rotation @ [1.0, 0.0, 0.0], [0.0, 0.0, 1.0], atol=1e-9)  # on its end
+    tips = _tips_under(slat, standing)
+
+    def grasp_with(approach_world: np.ndarray) -> Grasp:
+        closing = standing.rotation @ [0.0, 0.0, 1.0]  # across the thickness
+        approach = approach_world / np.linalg.norm(approach_world)
+        world_tcp = np.column_stack([np.cross(closing, approach), closing, approach])
+        part_tcp = standing.rotation.T @ world_tcp
+        return Grasp(Pose([0.0, 0.0, 0.05], Rotation.from_matrix(part_tcp).as_quat(scalar_first=True)),
+                     width_m=0.0074, opening_m=0.0174, score=1.0, centroid_score=1.0, contact_score=1.0)
+
+    width_axis = standing.rotation @ [0.0, 1.0, 0.0]
+    assert tips(grasp_with(np.array([0.0, 0.0, -1.0]) + np.tan(np.radians(30.0)) * width_axis))
+    assert not tips(grasp_with(np.array([0.0, 0.0, -1.0])))
+    on_edge = Pose([0.5, 0.3, 0.0125], Rotation.from_euler("x", 90, degrees=True).as_quat(scalar_first=True))
+    length_axis = on_edge.rotation @ [1.0, 0.0, 0.0]
+    closing = on_edge.rotation @ [0.0, 0.0, 1.0]
+    approach = np.array([0.0, 0.0, -1.0]) + np.tan(np.radians(30.0)) * length_axis
+    approach /= np.linalg.norm(approach)
+    world_tcp = np.column_stack([np.cross(closing, approach), closing, approach])
+    lying = Grasp(Pose([0.0, 0.0, 0.0], Rotation.from_matrix(on_edge.rotation.T @ world_tcp).as_quat(
+        scalar_first=True)), width_m=0.0074, opening_m=0.0174, score=1.0, centroid_score=1.0, contact_score=1.0)
+    assert not _tips_under(slat, on_edge)(lying)
