@@ -103,6 +103,12 @@ _DEDUP_DIRECTION_STEPS = 3  # direction components rounded to 1/3
 _CACHE_SIZE = 128
 _PAIRS_PER_CHUNK = 16
 _ENOUGH_DISTINCT_FACTOR = 2  # stop checking poses once 2 x max_candidates distinct collision-free ones are found
+# the best-scored candidates fill this share of the list; the rest is spread over the part, a candidate from each
+# SPREAD_CELL_M cube of TCP positions in turn: best-by-score alone can put every candidate on the edge nearest the
+# centre of mass (table_klubbo_0740's rails, an L of a long apron and a short leg: all 400 best lay on the apron's
+# edge, which the table top's groove covers; the leg's end, the only free place at the target, had none)
+BEST_SHARE = 0.7
+SPREAD_CELL_M = 0.05
 
 
 class NoGraspError(ValueError):
@@ -560,6 +566,23 @@ def _contact_scores(bvh: fcl.BVHModel, poses: np.ndarray, widths: np.ndarray) ->
     return out
 
 
+def _spread(order: np.ndarray, positions: np.ndarray, count: int) -> np.ndarray:
+    """The first ``count`` of ``order`` (indices, best first) reordered for spread: the best :data:`BEST_SHARE`
+    as they come, then, round and round the :data:`SPREAD_CELL_M` cubes of ``positions`` (rows of the whole array)
+    that the rest fall in, the best remaining candidate of each cube in turn (cubes in the order of their best)."""
+    keep = min(len(order), int(round(BEST_SHARE * count)))
+    head, rest = list(order[:keep]), order[keep:]
+    queues: dict[tuple, list[int]] = {}
+    for i in rest:
+        queues.setdefault(tuple(np.floor(positions[i] / SPREAD_CELL_M).astype(int)), []).append(int(i))
+    lanes = list(queues.values())
+    depth = 0
+    while len(head) < count and any(depth < len(lane) for lane in lanes):
+        head += [lane[depth] for lane in lanes if depth < len(lane)][: count - len(head)]
+        depth += 1
+    return np.asarray(head, dtype=np.int64)
+
+
 def _dedup_keys(poses: np.ndarray) -> np.ndarray:
     pos = np.floor(poses[:, :3, 3] / _DEDUP_POSITION_M)
     approach = np.round(poses[:, :3, 2] * _DEDUP_DIRECTION_STEPS)
@@ -630,7 +653,8 @@ def _compute_candidates(
             centroid = np.exp(-np.linalg.norm(poses[:, :3, 3] - com, axis=1) / _CENTROID_SCALE_M)
             order = np.argsort(-centroid, kind="stable")
             _, first = np.unique(_dedup_keys(poses[order]), axis=0, return_index=True)
-            chosen = order[np.sort(first)][: _ENOUGH_DISTINCT_FACTOR * max_candidates]
+            distinct = order[np.sort(first)]
+            chosen = _spread(distinct, poses[:, :3, 3], _ENOUGH_DISTINCT_FACTOR * max_candidates)
             planes = _convex_planes(mesh)
             if planes is not None:
                 contact = _contact_scores_convex(mesh, planes, poses[chosen], widths[chosen])
@@ -638,7 +662,8 @@ def _compute_candidates(
                 contact = _contact_scores(bvh, poses[chosen], widths[chosen])
             w = DEFAULT_WEIGHTS
             total = np.array([_total_score(c, p, 0.5, 0.5, w) for c, p in zip(centroid[chosen], contact)])
-            best = np.argsort(-total, kind="stable")[:max_candidates]
+            best = _spread(np.argsort(-total, kind="stable"), poses[chosen][:, :3, 3], max_candidates)
+            best = best[np.argsort(-total[best], kind="stable")]  # best first, whichever way it was chosen
             out = []
             for j in best:
                 i = chosen[j]

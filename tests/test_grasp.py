@@ -495,3 +495,32 @@ def test_real_furniture_summary(capsys):
         for line in missing:
             print("  " + line)
     assert total > 0
+
+
+def _l_bar() -> trimesh.Trimesh:
+    """An L of 7.6 mm bar (x-z profile extruded along y): a 46 cm apron along x, 12 mm tall, and at its +x end a
+    14 cm leg down, 12 mm wide; its centre of mass lies near the apron."""
+    profile = np.array([[-0.23, 0.058], [0.218, 0.058], [0.218, -0.07], [0.23, -0.07], [0.23, 0.07], [-0.23, 0.07]])
+    half = 0.0038
+    vertices = np.array([[x, y, z] for y in (-half, half) for x, z in profile])
+    fan = [(4, 5, 0), (4, 0, 1), (4, 1, 2), (4, 2, 3)]  # from the outer top corner, which sees every vertex
+    faces = list(fan) + [(c + 6, b + 6, a + 6) for a, b, c in fan]
+    for i in range(6):
+        j = (i + 1) % 6
+        faces += [(i, j, j + 6), (i, j + 6, i + 6)]
+    mesh = trimesh.Trimesh(vertices, faces, process=True)
+    mesh.fix_normals()
+    return mesh
+
+
+def test_candidates_spread_over_the_part_beyond_the_edge_nearest_its_centre():
+    """The best-scored grasps of an L all lie on the apron, nearest the centre of mass; the list still holds
+    grasps on the far end of the leg (where the apron may be covered at a target, the only free place)."""
+    bar = _l_bar()
+    assert bar.is_watertight and bar.volume > 0
+    grasps = antipodal_grasps(bar, np.random.default_rng(0))
+    assert len(grasps) == 100
+    on_leg_end = [g for g in grasps if g.part_from_tcp.position[2] < -0.03]
+    assert on_leg_end, "no candidate on the lower half of the leg"
+    scores = [g.score for g in grasps]
+    assert scores == sorted(scores, reverse=True)
