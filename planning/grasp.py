@@ -567,9 +567,10 @@ def _contact_scores(bvh: fcl.BVHModel, poses: np.ndarray, widths: np.ndarray) ->
 
 
 def _spread(order: np.ndarray, positions: np.ndarray, count: int) -> np.ndarray:
-    """The first ``count`` of ``order`` (indices, best first) reordered for spread: the best :data:`BEST_SHARE`
-    as they come, then, round and round the :data:`SPREAD_CELL_M` cubes of ``positions`` (rows of the whole array)
-    that the rest fall in, the best remaining candidate of each cube in turn (cubes in the order of their best)."""
+    """``count`` indices picked from ``order`` (indices, best first) for spread: the best :data:`BEST_SHARE` of
+    ``count`` as they come, then, round and round the :data:`SPREAD_CELL_M` cubes of ``positions`` (rows indexed
+    like ``order``'s entries) that the rest fall in, the best remaining candidate of each cube in turn (the cubes in
+    the order of their best)."""
     keep = min(len(order), int(round(BEST_SHARE * count)))
     head, rest = list(order[:keep]), order[keep:]
     queues: dict[tuple, list[int]] = {}
