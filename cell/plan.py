@@ -57,6 +57,8 @@ RELEASE_SEEDS = 4  # arm configurations at earlier releases that seed a release 
 SHOULDER_HEIGHT_M = 0.333
 HAND_LENGTH_M = 0.21  # flange to the TCP between the fingertips
 NEAR_TARGET_M = 0.25  # placed parts farther than this from a part's target cannot touch the hand placing it
+KIT_SEGMENT_STEP_M = 0.01  # kitting checks the straight lines at its configurations this finely (the task planner
+# checks every motion at planning.robot_collision.SEGMENT_STEP_M)
 SELF = "the part itself"  # its name among the obstacles of its own reach checks
 
 
@@ -205,10 +207,11 @@ class _KitReach(Reach):
     def _chain(self, poses: list[Pose], seed: np.ndarray | None,
                checks: list[tuple[frozenset[str], frozenset[str]]] | None,
                load: JointTorques | None = None, held: tuple[bool, ...] = (), elsewhere: bool = False,
-               first_ik: IKSettings | None = None):
+               first_ik: IKSettings | None = None, segments: tuple[tuple[int, int, int], ...] = ()):
         """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its (ignore, hand_ignore)
-        sets (see :meth:`RobotCollisionChecker.first_invalid`; no collision check when ``checks`` is None) and,
-        where ``held``, holding the ``load``; or None. The first attempt starts from ``seed``; the others from where
+        sets (see :meth:`RobotCollisionChecker.first_invalid`; no collision check when ``checks`` is None), the
+        joint-space ``segments`` (from, to, index of the checks) between them valid too, and, where ``held``,
+        holding the ``load``; or None. The first attempt starts from ``seed``; the others from where
         the last one left the arm, or, ``elsewhere``, from random configurations (the arm is redundant: another
         elbow may clear what the first one meets). The first pose's inverse kinematics uses ``first_ik`` (default:
         the planner's settings, few restarts), the others start from the pose before."""
@@ -228,8 +231,12 @@ class _KitReach(Reach):
             except IKError:
                 continue
             self.chain_unreached = False
-            free = checks is None or all(self.checker.is_valid(q, ignore=ignore, hand_ignore=hand_ignore)
-                                         for q, (ignore, hand_ignore) in zip(configurations, checks))
+            free = checks is None or (
+                all(self.checker.is_valid(q, ignore=ignore, hand_ignore=hand_ignore)
+                    for q, (ignore, hand_ignore) in zip(configurations, checks))
+                and all(self.checker.segment_valid(configurations[a], configurations[b], ignore=checks[k][0],
+                                                   hand_ignore=checks[k][1], max_step_m=KIT_SEGMENT_STEP_M)
+                        for a, b, k in segments))
             if load is not None and not all(load.within(q[None])[0] for q, h in zip(configurations, held) if h):
                 self.too_heavy += int(free)  # it would have worked, but for the part's weight
                 continue
@@ -261,6 +268,14 @@ class _KitReach(Reach):
     # part is in the hand, not at its target; end of the retreat: clear of everything, the released part included
     _AT_TARGET_IGNORES = ((frozenset(), frozenset({SELF})), (frozenset({SELF}), frozenset()),
                           (frozenset(), frozenset()))
+    # the straight lines between them, as joint-space segments (from, to, checked as): the insertion from the
+    # pre-place to the release (the part in the hand), the retreat from the release (the opened fingers around the
+    # part); at the pick, the approach from the pre-grasp to the grasp (the hand around the part) and the lift
+    # (the part in the hand). The first configurations checked alone let an arm meet a kitted part halfway along
+    # (cabinet_1's bottom: link 7 met drawer_1_side_right on the approach to its pick)
+    _TARGET_SEGMENTS = ((1, 0, 1), (0, 2, 0))
+    _PICK_SEGMENTS = ((1, 0, 0), (0, 2, 2))
+    _STRAIGHT_LINES = ((1, 0), (0, 2))  # the same lines, at the pick and at the target
 
     def at_target(self, part: str, grasp: Grasp, kit: list[tuple[trimesh.Trimesh, Pose]] = ()) -> tuple | None:
         """The arm configurations at ``part``'s release, pre-place and retreat's end with ``grasp``, clear of the
@@ -272,18 +287,20 @@ class _KitReach(Reach):
             poses = self._at_target_world(part, grasp, kit)
             # the part is in the hand at the release and the pre-place, not at the retreat's end
             checks, load = list(self._AT_TARGET_IGNORES), self._load(part, grasp)
-            found = self._chain(poses, self.home_q, checks, load, (True, True, False), elsewhere=bool(kit))
+            found = self._chain(poses, self.home_q, checks, load, (True, True, False), elsewhere=bool(kit),
+                                segments=self._TARGET_SEGMENTS)
             reached = not self.chain_unreached
             if found is None and not kit:  # harder: other elbows, and more starts for the release (the first
                 # attempts start at home and near each other)
                 start = pose_rng(poses[0], self.seed + 1).uniform(self.panda.lower_limits, self.panda.upper_limits)
                 found = self._chain(poses, start, checks, load, (True, True, False), elsewhere=True,
-                                    first_ik=IKSettings())
+                                    first_ik=IKSettings(), segments=self._TARGET_SEGMENTS)
                 reached = reached or not self.chain_unreached
                 # at the edge of the reach (cabinet_13's side panel), random starts rarely converge: from the
                 # releases found for other grasps and parts, nearby
                 for seed in (self.release_seeds[::-1] if found is None and self.chain_unreached else []):
-                    found = self._chain(poses, seed, checks, load, (True, True, False), first_ik=IKSettings())
+                    found = self._chain(poses, seed, checks, load, (True, True, False), first_ik=IKSettings(),
+                                        segments=self._TARGET_SEGMENTS)
                     reached = reached or not self.chain_unreached
                     if found is not None or not self.chain_unreached:
                         break
@@ -350,7 +367,7 @@ class _KitReach(Reach):
         # pre-grasp: clear of the part; lifted: the part is in the hand
         none, hand_only = (frozenset(), frozenset()), (frozenset(), frozenset({SELF}))
         found = self._chain([tcp, pre, lifted], self.home_q, [hand_only, none, (frozenset({SELF}), frozenset())],
-                            self._load(part, grasp), (True, False, True))
+                            self._load(part, grasp), (True, False, True), segments=self._PICK_SEGMENTS)
         return None if found is None else (tuple(found), target, max(grasp.opening_m, grasp.opening_at_pick_m))
 
     def _load(self, part: str, grasp: Grasp) -> JointTorques | None:
@@ -359,11 +376,14 @@ class _KitReach(Reach):
         return None if payload is None else JointTorques(self.checker, payload, grasp.part_from_tcp.inverse())
 
     def still_clear(self, reach, obstacles) -> bool:
-        """Whether the arm configurations of ``reach`` (at the pick and at the target) touch neither the table nor
-        ``obstacles`` (kitting parts and pedestals)."""
+        """Whether the arm configurations of ``reach`` (at the pick and at the target), and the straight lines
+        between them, touch neither the table nor ``obstacles`` (kitting parts and pedestals)."""
         self.checker.set_obstacles(self._world(list(obstacles), []))
         self.checker.hold(None, opening_m=reach[2])
-        return all(self.checker.is_valid(q) for q in reach[0] + reach[1])
+        return (all(self.checker.is_valid(q) for q in reach[0] + reach[1])
+                and all(self.checker.segment_valid(configurations[a], configurations[b], max_step_m=KIT_SEGMENT_STEP_M)
+                        for configurations in reach[:2] if len(configurations) == 3
+                        for a, b in self._STRAIGHT_LINES))
 
 
 JIG_TURNS_DEG = (0.0, 90.0, 270.0, 180.0)

@@ -114,6 +114,27 @@ def test_the_jig_slides_toward_the_robot_and_turns_about_its_own_origin():
     assert np.allclose(placed.rotation @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-9)  # a quarter turn about +z
 
 
+def test_kitting_checks_the_straight_lines_between_its_arm_configurations():
+    """Two TCP poses 30 cm apart, a box halfway between them: the arm configurations at both ends are clear, the
+    joint-space line between them is not, and a chain asked to check that line finds none (kitting checks the
+    approach, lift, insertion and retreat so: cabinet_1's arm met a kitted part halfway along an approach)."""
+    scene = load_scene()
+    top_z = scene.table.top_z
+    start, end = (Pose([0.5, y, top_z + 0.25], DOWN_TCP) for y in (-0.15, 0.15))
+    box = (trimesh.creation.box((0.04, 0.04, 0.04)), Pose([0.5, 0.0, top_z + 0.25], [1.0, 0.0, 0.0, 0.0]))
+    clear = (frozenset(), frozenset())
+    with BulletClient() as client:
+        panda = Panda(client, scene.robot.world_from_base)
+        reach = _KitReach(panda, scene, 0, np.array(scene.robot.home_q), {"board": start}, {"board": BOARD},
+                          ["board"], {"board": np.array([0.0, 0.0, -1.0])})
+        reach.checker.set_obstacles(reach._world([box], []))
+        reach.checker.hold(None, opening_m=0.04)
+        ends = reach._chain([start, end], reach.home_q, [clear, clear])
+        assert ends is not None
+        assert not reach.checker.segment_valid(ends[0], ends[1])
+        assert reach._chain([start, end], reach.home_q, [clear, clear], segments=((0, 1, 0),)) is None
+
+
 def test_a_grasp_at_the_target_clears_the_whole_insertion():
     """A post pushed 8 cm down into its target under a shelf: the hand, top-down on the post, clears the shelf at
     the target and over the last 3 cm, and meets it 4 cm up. The cell inserts along INSERTION_M (8 cm), so it
