@@ -1094,10 +1094,12 @@ def _slanted(world_from_part: Pose, grasp: Grasp) -> bool:
 
 def _tips_under(mesh: trimesh.Trimesh, world_from_part: Pose):
     """``tips(grasp)``: whether the part, standing at ``world_from_part``, would tip over its foot as the hand of
-    ``grasp`` closes on it: the approach is slanted (:data:`SLANTED_APPROACH`) and, along the horizontal direction
-    across the closing axis (the fingers' flat pads leave a turn about that axis free; chocks hold a standing board
-    along it), the foot reaches less than 1 / :data:`TIPPING_HEIGHT_RATIO` of the centre of mass's height from
-    it."""
+    ``grasp`` closes on it: the approach is slanted (:data:`SLANTED_APPROACH`), the fingers close level
+    (:data:`LEVEL_FINGERS`), and along the horizontal direction across the closing axis (the fingers' flat pads
+    leave a turn about that axis free; chocks hold a standing board along it) the foot straddles the centre of
+    mass but reaches less than 1 / :data:`TIPPING_HEIGHT_RATIO` of its height from it. A foot (the points within
+    :data:`FOOT_M` of the lowest) to one side of the centre of mass is not all the part rests on (chair_agne_0010's
+    curved frame lying flat, which the rest check found stable): not judged."""
     rotation = world_from_part.rotation
     points = mesh.vertices @ rotation.T
     low = float(points[:, 2].min())
@@ -1109,11 +1111,12 @@ def _tips_under(mesh: trimesh.Trimesh, world_from_part: Pose):
         tcp = rotation @ grasp.part_from_tcp.rotation
         if -float(tcp[2, 2]) >= SLANTED_APPROACH:
             return False
+        if abs(float(tcp[2, 1])) > LEVEL_FINGERS:
+            return False  # the fingers close on a tilt: not a part standing between level fingers
         across = np.cross(tcp[:, 1], [0.0, 0.0, 1.0])
-        if np.linalg.norm(across) < 1e-6:
-            return False  # the fingers close vertically: not a standing part's grasp
         along = (foot - com) @ (across / np.linalg.norm(across))
-        return min(float(along.max()), float(-along.min())) * TIPPING_HEIGHT_RATIO < height
+        lever = min(float(along.max()), float(-along.min()))
+        return 0.0 <= lever and lever * TIPPING_HEIGHT_RATIO < height
 
     return tips
 
