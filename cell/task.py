@@ -47,7 +47,7 @@ from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path
 from planning.payload import JointTorques, MassProperties, carry_limits
 from planning.pose import Pose
 from planning.robot_collision import RobotCollisionChecker
-from planning.timing import JointLimits, time_path
+from planning.timing import MAX_DEVIATION_RAD, JointLimits, time_path
 
 LIFT_M = 0.10  # straight lift after grasping, world +z
 INSERTION_M = 0.08  # straight insertion along the insertion direction into the target
@@ -68,6 +68,11 @@ SLIDE_SAMPLES = 5  # poses along the insertion where the neighbours it slides al
 SIDE_NORMAL_MAX_COS = 0.3  # a contact normal this close to perpendicular to the insertion is a neighbour's side
 HELD_OFF_TOLERANCE_M = 1e-4  # a part held off its neighbour by the slide clearance may sink this far into another
 INSERTION_SPEED_M_S = 0.05  # the TCP's top speed (m/s) while a part goes into its target: see _insertion_limits
+# the insertion's blends keep this close to its path (joint-space distance; about 0.1 mm at the TCP, whose lever
+# is under 0.9 m): a part goes between neighbours with a quarter of a millimetre to spare on each side, and blends
+# at the timing's default (MAX_DEVIATION_RAD) carried a cabinet top 0.5 mm sideways off its line between the IK
+# points 2 cm apart; it caught on a side's edge and tilted 7 degrees
+INSERTION_DEVIATION_RAD = 1e-4
 TORQUE_CHECK_HZ = 250.0  # a timed motion's torques are checked at this rate (the simulator steps at 240 Hz)
 TORQUE_RETIMINGS = 4  # at most this many slower timings of one motion for its torques
 TORQUE_SCALE_MARGIN = 0.9  # each slower timing scales accelerations by this much more than the torques ask
@@ -488,9 +493,11 @@ def _free_space_validity(world: CellWorld, start_q: np.ndarray, goal_q: np.ndarr
 
 
 def _timed(world: CellWorld, path: np.ndarray, valid, part: str, stage: str,
-           limits: JointLimits = PANDA_LIMITS, stops: Sequence[int] = ()):
+           limits: JointLimits = PANDA_LIMITS, stops: Sequence[int] = (),
+           max_deviation_rad: float = MAX_DEVIATION_RAD):
     """Time a joint path with Ruckig within ``limits`` and the joints' position limits, at rest at the waypoints
-    indexed by ``stops`` (adds the seconds spent to ``world.timing_seconds``)."""
+    indexed by ``stops``, its blends within ``max_deviation_rad`` of the path (adds the seconds spent to
+    ``world.timing_seconds``)."""
     started = time.perf_counter()
     kept = _kept(path)
     path = np.asarray(path)[kept]
@@ -499,7 +506,8 @@ def _timed(world: CellWorld, path: np.ndarray, valid, part: str, stage: str,
         path = np.stack([path[0], path[0] + 1e-9])
     def timed_within(limits: JointLimits):
         return time_path(path, limits, is_valid=valid, first_invalid=getattr(valid, "first_invalid", None),
-                         position_limits=(world.panda.lower_limits, world.panda.upper_limits), stops=stops)
+                         position_limits=(world.panda.lower_limits, world.panda.upper_limits), stops=stops,
+                         max_deviation_rad=max_deviation_rad)
 
     try:
         timed = timed_within(limits)
@@ -537,9 +545,10 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
     q = np.asarray(home_q, dtype=np.float64)
 
     def add_motion(part: str, label: str, path: np.ndarray, valid, held: str | None,
-                   limits: JointLimits = PANDA_LIMITS, stops: Sequence[int] = ()) -> None:
-        program.steps.append(MotionStep(f"{part}: {label}", _timed(world, path, valid, part, label, limits, stops),
-                                        held))
+                   limits: JointLimits = PANDA_LIMITS, stops: Sequence[int] = (),
+                   max_deviation_rad: float = MAX_DEVIATION_RAD) -> None:
+        timed = _timed(world, path, valid, part, label, limits, stops, max_deviation_rad)
+        program.steps.append(MotionStep(f"{part}: {label}", timed, held))
 
     opening = program.initial_width_m
     for index, task in enumerate(tasks):
@@ -623,7 +632,7 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         add_motion(name, "move to the target", carry, valid, name, carrying)
         world.hold(name, grasp, grasp.width_m)
         add_motion(name, "insert", insertion, valid_insert, name, _insertion_limits(world, insertion, carrying),
-                   stops=corner)
+                   stops=corner, max_deviation_rad=INSERTION_DEVIATION_RAD)
         # --- release ---------------------------------------------------------------------------------------
         program.steps.append(GripperStep(f"{name}: open", grasp.opening_m, name))
         poses[name] = task.world_from_target

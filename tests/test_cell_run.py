@@ -260,7 +260,8 @@ def test_a_top_slides_down_between_its_sides(tmp_path):
     quarter of a millimetre to spare on each side), planned and simulated in full: the top lands on its target. It
     used to stop high and tilted (6 degrees here; 4-14 mm on whole cabinets), held up by PyBullet contacts that were
     made against the sides' top edges from above and kept along that first normal as the top moved past them
-    (``SimSettings.insertion_contact_breaking_m``)."""
+    (``SimSettings.insertion_contact_breaking_m``). Later it caught on a side's edge and tilted 7 degrees, carried
+    half a millimetre off its straight line by the insertion timing's blends (``cell.task.INSERTION_DEVIATION_RAD``)."""
     cabinet = generate("cabinet", "3", np.random.default_rng([2000, 0]), "carcass")
     keep = {"plinth_front", "plinth_rear", "plinth_left", "plinth_right", "bottom", "side_left", "side_right", "top"}
     cabinet.parts = [p for p in cabinet.parts if p.name in keep]
