@@ -275,7 +275,9 @@ class _KitReach(Reach):
     # (cabinet_1's bottom: link 7 met drawer_1_side_right on the approach to its pick)
     _TARGET_SEGMENTS = ((1, 0, 1), (0, 2, 0))
     _PICK_SEGMENTS = ((1, 0, 0), (0, 2, 2))
-    _STRAIGHT_LINES = ((1, 0), (0, 2))  # the same lines, at the pick and at the target
+    # the same (from, to) pairs at the pick and at the target: still_clear checks either kind of configurations
+    _STRAIGHT_LINES = tuple(segment[:2] for segment in _TARGET_SEGMENTS)
+    assert _STRAIGHT_LINES == tuple(segment[:2] for segment in _PICK_SEGMENTS)
 
     def at_target(self, part: str, grasp: Grasp, kit: list[tuple[trimesh.Trimesh, Pose]] = ()) -> tuple | None:
         """The arm configurations at ``part``'s release, pre-place and retreat's end with ``grasp``, clear of the
