@@ -53,6 +53,10 @@ LIFT_M = 0.10  # straight lift after grasping, world +z
 INSERTION_M = 0.08  # straight insertion along the insertion direction into the target
 LEAD_IN_STEPS_M = (0.04, 0.08, 0.16, 0.24)  # farther back it may start, where its pre-place lies between neighbours
 CARTESIAN_STEP_M = 0.02  # inverse kinematics every this much along straight segments
+# and along the insertion, whose joint path between IK points sags off the straight line by the square of their
+# spacing: at 2 cm the TCP strayed 0.3 mm, more than a part fitted between two neighbours has to spare (a quarter
+# of a millimetre each side in the simulator), and a drawer's back was pushed into a side at 430 N
+INSERTION_STEP_M = 0.005
 MAX_JOINT_STEP_RAD = 0.35  # larger jumps between neighbouring straight-line solutions mean a branch switch
 HELD_MARGIN_M = 0.002  # the held part is checked pulled in by this much, so it may slide along faces it touches
 SQUEEZE_M = 0.004  # the closing command asks for this much less than the part's width (force closure)
@@ -70,8 +74,8 @@ HELD_OFF_TOLERANCE_M = 1e-4  # a part held off its neighbour by the slide cleara
 INSERTION_SPEED_M_S = 0.05  # the TCP's top speed (m/s) while a part goes into its target: see _insertion_limits
 # the insertion's blends keep this close to its path (joint-space distance; about 0.1 mm at the TCP, whose lever
 # is under 0.9 m): a part goes between neighbours with a quarter of a millimetre to spare on each side, and blends
-# at the timing's default (MAX_DEVIATION_RAD) carried a cabinet top 0.5 mm sideways off its line between the IK
-# points 2 cm apart; it caught on a side's edge and tilted 7 degrees
+# at the timing's default (MAX_DEVIATION_RAD) carried a cabinet top 0.5 mm sideways off its line between IK points
+# 2 cm apart; it caught on a side's edge and tilted 7 degrees. With INSERTION_STEP_M the TCP keeps within 0.04 mm
 INSERTION_DEVIATION_RAD = 1e-4
 TORQUE_CHECK_HZ = 250.0  # a timed motion's torques are checked at this rate (the simulator steps at 240 Hz)
 TORQUE_RETIMINGS = 4  # at most this many slower timings of one motion for its torques
@@ -229,11 +233,11 @@ class CellWorld:
         raise TaskPlanningError("no_ik", part, stage, last_error)
 
     def straight_line(self, q_contact: np.ndarray, world_from_tcp_contact: Pose, offset_world: np.ndarray,
-                      valid, part: str, stage: str) -> np.ndarray:
+                      valid, part: str, stage: str, step_m: float = CARTESIAN_STEP_M) -> np.ndarray:
         """Joint waypoints (K, 7) from the contact configuration out to the TCP moved by ``offset_world`` (m),
-        keeping the orientation: IK every :data:`CARTESIAN_STEP_M`, each seeded from the previous point."""
+        keeping the orientation: IK every ``step_m`` (m), each seeded from the previous point."""
         distance = float(np.linalg.norm(offset_world))
-        steps = max(1, int(np.ceil(distance / CARTESIAN_STEP_M)))
+        steps = max(1, int(np.ceil(distance / step_m)))
         settings = IKSettings(restarts=1, refinements=24, iterations=200)
         path = [np.asarray(q_contact, dtype=np.float64)]
         for k in range(1, steps + 1):
@@ -677,14 +681,17 @@ def _insertion(world: CellWorld, place_q: np.ndarray, world_from_tcp_place: Pose
     path collides or leaves the reachable space, the diagonal line."""
     if np.linalg.norm(shift_m) > 0.0:
         try:
-            seat = world.straight_line(place_q, world_from_tcp_place, shift_m, valid, part, "insertion")
+            seat = world.straight_line(place_q, world_from_tcp_place, shift_m, valid, part, "insertion",
+                                       INSERTION_STEP_M)
             held_off = Pose(world_from_tcp_place.position + shift_m, world_from_tcp_place.quat_wxyz)
-            down = world.straight_line(seat[-1], held_off, -direction * INSERTION_M, valid, part, "insertion")
+            down = world.straight_line(seat[-1], held_off, -direction * INSERTION_M, valid, part, "insertion",
+                                       INSERTION_STEP_M)
             return np.concatenate([down[::-1], seat[::-1][1:]]), (len(down) - 1,)
         except TaskPlanningError:
             pass
     back = -direction * INSERTION_M + shift_m
-    return world.straight_line(place_q, world_from_tcp_place, back, valid, part, "insertion")[::-1], ()
+    return world.straight_line(place_q, world_from_tcp_place, back, valid, part, "insertion",
+                               INSERTION_STEP_M)[::-1], ()
 
 
 def _lead_in(world: CellWorld, part: str, grasp: Grasp, pre_q: np.ndarray, direction: np.ndarray, clear,
