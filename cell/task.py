@@ -549,10 +549,8 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
     q = np.asarray(home_q, dtype=np.float64)
 
     def add_motion(part: str, label: str, path: np.ndarray, valid, held: str | None,
-                   limits: JointLimits = PANDA_LIMITS, stops: Sequence[int] = (),
-                   max_deviation_rad: float = MAX_DEVIATION_RAD) -> None:
-        timed = _timed(world, path, valid, part, label, limits, stops, max_deviation_rad)
-        program.steps.append(MotionStep(f"{part}: {label}", timed, held))
+                   limits: JointLimits = PANDA_LIMITS) -> None:
+        program.steps.append(MotionStep(f"{part}: {label}", _timed(world, path, valid, part, label, limits), held))
 
     opening = program.initial_width_m
     for index, task in enumerate(tasks):
@@ -635,8 +633,8 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         world.hold(name, grasp, grasp.width_m, margin_m=carry_margin_m)
         add_motion(name, "move to the target", carry, valid, name, carrying)
         world.hold(name, grasp, grasp.width_m)
-        add_motion(name, "insert", insertion, valid_insert, name, _insertion_limits(world, insertion, carrying),
-                   stops=corner, max_deviation_rad=INSERTION_DEVIATION_RAD)
+        program.steps.append(MotionStep(f"{name}: insert",
+                                        _timed_insertion(world, insertion, valid_insert, name, carrying, corner), name))
         # --- release ---------------------------------------------------------------------------------------
         program.steps.append(GripperStep(f"{name}: open", grasp.opening_m, name))
         poses[name] = task.world_from_target
@@ -749,6 +747,14 @@ def _slot_entry(world: CellWorld, part: str, grasp: Grasp, carry: np.ndarray) ->
             if clear(q):
                 return np.concatenate([carry[:j + 1], q[None]]), np.concatenate([q[None], carry[j + 1:]])
     return carry, carry[-1:]
+
+
+def _timed_insertion(world: CellWorld, path: np.ndarray, valid, part: str, limits: JointLimits,
+                     stops: Sequence[int]):
+    """The insertion ``path`` timed: within ``limits`` slowed by :func:`_insertion_limits`, its blends within
+    :data:`INSERTION_DEVIATION_RAD` of the path, at rest at the waypoints indexed by ``stops``."""
+    return _timed(world, path, valid, part, "insert", _insertion_limits(world, path, limits), stops,
+                  INSERTION_DEVIATION_RAD)
 
 
 def _insertion_limits(world: CellWorld, path: np.ndarray, limits: JointLimits) -> JointLimits:

@@ -11,7 +11,6 @@ from cell.bullet import BulletClient
 from cell.robot import Panda
 from cell.task import (
     CARRY_CLEARANCE_M,
-    INSERTION_DEVIATION_RAD,
     INSERTION_M,
     INSERTION_SPEED_M_S,
     JOINT_LIMIT_MARGIN_RAD,
@@ -26,6 +25,7 @@ from cell.task import (
     _insertion_limits,
     _lead_in,
     _slot_entry,
+    _timed_insertion,
     plan_tasks,
 )
 from planning.collision import ConvexPart
@@ -156,18 +156,17 @@ def test_insertions_are_timed_slowly_enough_for_tight_fits(panda):
 
 
 def test_an_insertion_keeps_the_part_on_its_straight_line(panda):
-    """The timed insertion, sampled at 1 kHz, keeps the TCP within 0.1 mm of its straight line: a part fitted
-    between two neighbours has a quarter of a millimetre to spare on each side in the simulator. The hand comes in
-    level (+x) and goes down, as it placed a cabinet's top between its sides; with IK every 2 cm and the timing's
-    default blends the TCP strayed 0.35 mm here (0.55 mm on the cabinet, whose top caught on a side)."""
+    """The insertion as the task planner times it, sampled at 1 kHz, keeps the TCP within 0.1 mm of its straight
+    line: a part fitted between two neighbours has a quarter of a millimetre to spare on each side in the simulator.
+    The hand comes in level (+x) and goes down, as it placed a cabinet's top between its sides; with IK every 2 cm
+    and the timing's default blends the TCP strayed 0.35 mm here (0.55 mm on the cabinet, whose top caught on a
+    side)."""
     world = world_with(panda, {})
     level = Pose([0.55, 0.0, 0.4], [np.sqrt(0.5), 0.0, np.sqrt(0.5), 0.0])  # TCP z (approach) along world +x
     assert level.rotation[:, 2] == pytest.approx([1.0, 0.0, 0.0], abs=1e-9)
     q = world.solve_ik(level, np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8]), lambda q: True, "bar", "test")
     path, stops = _insertion(world, q, level, DOWN, np.zeros(3), lambda q: True, "bar")
-    timed = time_path(path, _insertion_limits(world, path, PANDA_LIMITS), max_deviation_rad=INSERTION_DEVIATION_RAD,
-                      stops=stops)
-    _, qs, _, _ = timed.sample(1000.0)
+    _, qs, _, _ = _timed_insertion(world, path, lambda q: True, "bar", PANDA_LIMITS, stops).sample(1000.0)
     tcp = np.array([panda.forward_tcp(q).position for q in qs])
     assert tcp[0, 2] - tcp[-1, 2] == pytest.approx(INSERTION_M, abs=1e-4)
     assert np.max(np.linalg.norm(tcp[:, :2] - level.position[:2], axis=1)) < 1e-4
