@@ -466,3 +466,40 @@ def test_a_kit_part_that_bullet_keeps_awake_is_held_still_until_touched():
 
     assert creep(hold=True) < 1e-6
     assert creep(hold=False) > 1e-4
+
+
+def test_a_rail_passes_the_top_edges_beside_it_with_a_tenth_of_a_millimetre_to_spare(arm):
+    """A rail held at its middle comes straight down at about 5 cm/s between two sides whose tops are flush with
+    its target's top, its body 0.1 mm from each (cabinet_akurum_0011's back rail once its sides had settled 0.2 and
+    0.08 mm inwards): its lower edges pass the sides' top edges and it lands on its pad, level. On the whole
+    cabinet, one physics step per program sample, that rail caught both edges and ended 4.8 degrees off; this
+    two-sided test does not reproduce that (the cabinet does, see ``SimSettings.insertion_substeps``), it guards
+    the fit itself."""
+    gap_m = 0.0001
+    length_m, height_m = 0.16, 0.02
+    rail = SimPart("rail", box((length_m, 0.04, height_m)), at(0.35, 0.3, 0.04 + 0.5 * height_m),
+                   at(0.5, 0.0, PAD_TOP_M + 0.5 * height_m), (FIXTURE,))
+    side_height_m = PAD_TOP_M + height_m
+    # each side's inner face: the rail's end plus the gap, less the inset of the rail's body
+    inner_x = 0.5 * length_m - 0.5 * SimSettings().joint_clearance_m + gap_m
+    static = STATIC[:3] + [StaticBody(f"side {sign:+d}", box((0.02, 0.06, side_height_m)),
+                                      at(0.5 + sign * (inner_x + 0.01), 0.0, 0.5 * side_height_m))
+                           for sign in (-1, 1)]
+    pick = arm.vertical(grasp_tcp(rail, rail.world_from_start), HOME)
+    place = arm.vertical(grasp_tcp(rail, rail.world_from_target), pick[-1], points=21)  # IK every 5 mm
+    full = time_path(np.stack(place[::-1]), LIMITS, max_deviation_rad=1e-4)
+    insert = time_path(np.stack(place[::-1]), LIMITS.slowed(full.duration / 2.0), max_deviation_rad=1e-4)
+    steps = [MotionStep("rail: move to the pick", timed(HOME, pick[-1])),
+             MotionStep("rail: approach", timed(*pick[::-1])),
+             GripperStep("rail: close", CLOSED_M, "rail"),
+             MotionStep("rail: lift", timed(*pick), "rail"),
+             MotionStep("rail: move to the target", timed(pick[-1], place[-1]), "rail"),
+             MotionStep("rail: insert", insert, "rail"),
+             GripperStep("rail: open", OPENING_M, "rail"),
+             MotionStep("rail: retreat", timed(*place)),
+             MotionStep("return home", timed(place[-1], HOME))]
+    result = simulate_program(Program(steps, initial_width_m=OPENING_M), [rail], static, BASE)
+    assert result.success, result.failure_words()
+    (placed,) = result.parts
+    assert placed.position_error_m < 0.0005 and placed.rotation_error_deg < 0.2, placed
+    assert not result.contacts, result.contacts
