@@ -487,6 +487,16 @@ def _among_neighbours_validity(world: CellWorld, task: PartTask, exact, ends: tu
     return _ClearExceptNearEnds(_AllValid(clear, exact), exact, ends)
 
 
+def _retreat_validity(world: CellWorld, placed: str, in_kit: frozenset[str]):
+    """Validity for the retreat of the open hand from ``placed``, just released: the exact check (the fingers may
+    pass close to it and to its neighbours), and the transit clearance from the parts still in the kit
+    (``in_kit``), which the retreat has no need to pass close to: cabinet_17's shelf retreated 1.5-2 mm from a side
+    panel lying in the kit, within the simulator's contact margin of the arm's link 6."""
+    exact = world.validity(hand_ignore=frozenset({placed}))
+    clear_of_kit = world.validity(transit=True, ignore=frozenset(world.static) | (frozenset(world.part_poses) - in_kit))
+    return _AllValid(exact, clear_of_kit)
+
+
 def _free_space_validity(world: CellWorld, start_q: np.ndarray, goal_q: np.ndarray):
     """Validity for a move of the empty hand from ``start_q`` to ``goal_q``: with the transit clearance, relaxed
     near an end that lies closer than that to something (see :class:`_ClearExceptNearEnds`)."""
@@ -640,7 +650,7 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         poses[name] = task.world_from_target
         world.set_part_poses(poses)
         world.hold(None, None, grasp.opening_m)
-        valid = world.validity(hand_ignore=frozenset({name}))
+        valid = _retreat_validity(world, name, frozenset(t.part for t in tasks[index + 1:]))
         retreat = world.straight_line(place_q, tcp_place, -tcp_place.rotation[:, 2] * APPROACH_M, valid, name,
                                       "retreat")
         add_motion(name, "retreat", retreat, valid, None)

@@ -21,6 +21,7 @@ from cell.task import (
     CellWorld,
     PartTask,
     _among_neighbours_validity,
+    _retreat_validity,
     _insertion,
     _insertion_limits,
     _lead_in,
@@ -384,3 +385,36 @@ def test_a_hand_that_cannot_open_wider_after_the_retreat_opens_at_the_next_appro
     world.set_part_poses({"finned": tasks[0].world_from_target, "next": tasks[1].world_from_pick})
     world.hold(None, None, narrow.opening_m)
     assert all(world.validity()(config) for config in q)
+
+
+def test_a_retreat_keeps_the_transit_clearance_from_parts_in_the_kit(panda):
+    """The open hand retreats from a released plank. A block beside the hand 2 mm from it, where the retreat ends,
+    is within the transit clearance: as a part lying in the kit it blocks the retreat (cabinet_17's shelf retreated
+    1.5-2 mm from a side panel in the kit and grazed it in the simulator), as a placed part it does not (the
+    fingers may pass close to the parts around the one they released)."""
+    plank, block = trimesh.creation.box((0.008, 0.4, 0.02)), trimesh.creation.box((0.05, 0.05, 0.05))
+    world = CellWorld(panda, Pose.identity(), {}, {"plank": ConvexPart.from_mesh("plank", plank),
+                                                   "block": ConvexPart.from_mesh("block", block)},
+                      np.random.default_rng(0))
+    plank_at = Pose([0.5, 0.0, 0.2], [1, 0, 0, 0])
+    world.set_part_poses({"plank": plank_at})
+    world.hold(None, None, 0.02)
+    start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
+    end = world.solve_ik(Pose([0.5, 0.0, 0.3], [0.0, 1.0, 0.0, 0.0]), start, world.validity(), "plank", "test")
+
+    def block_at(x: float) -> dict[str, Pose]:
+        return {"plank": plank_at, "block": Pose([x, 0.0, 0.3], [1, 0, 0, 0])}
+
+    touching, free = 0.5, 0.9  # block centres (x, m): the block meets the hand at the first, not at the second
+    world.set_part_poses(block_at(touching))
+    assert not world.validity()(end)
+    while free - touching > 1e-5:
+        middle = 0.5 * (touching + free)
+        world.set_part_poses(block_at(middle))
+        touching, free = (middle, free) if not world.validity()(end) else (touching, middle)
+    world.set_part_poses(block_at(free + 0.002))  # 2 mm (plus the link clearance) from the hand
+    assert world.validity()(end)
+    assert not _retreat_validity(world, "plank", frozenset({"block"}))(end)
+    assert _retreat_validity(world, "plank", frozenset())(end)
+    world.set_part_poses(block_at(free + 0.002 + TRANSIT_CLEARANCE_M))
+    assert _retreat_validity(world, "plank", frozenset({"block"}))(end)
