@@ -195,11 +195,18 @@ class Pipeline:
                 bars[0].n = round(fraction * bars[0].total)
                 bars[0].refresh()
 
+        def on_retry(part: str, reason: str) -> None:
+            for bar in bars:
+                bar.close()
+            bars.clear()
+            self.console.say(f"    {reason}\n    planning the motions again with another grasp of {part}")
+            bars.append(self.console.bar(len(build.parts), "part"))
+
         seconds = self.console.stage_seconds
         try:
             plan = plan_cell(self.scene, build, sequence, seed=self.args.seed,
                              motion=MotionSettings(planner=self.args.planner, seed=self.args.seed),
-                             progress=progress, on_stage=on_stage)
+                             progress=progress, on_stage=on_stage, on_retry=on_retry)
         except PlanningFailed as exc:
             for name, value in exc.seconds.items():
                 seconds[name] = seconds.get(name, 0.0) + value

@@ -16,10 +16,12 @@ from cell.task import (
     JOINT_LIMIT_MARGIN_RAD,
     LEAD_IN_STEPS_M,
     PANDA_LIMITS,
+    RETREAT_KIT_CLEARANCE_M,
     SLIDE_CLEARANCE_M,
     TRANSIT_CLEARANCE_M,
     CellWorld,
     PartTask,
+    TaskPlanningError,
     _among_neighbours_validity,
     _retreat_validity,
     _insertion,
@@ -31,6 +33,7 @@ from cell.task import (
 )
 from planning.collision import ConvexPart
 from planning.grasp import Grasp
+from planning.robot_collision import LINK_CLEARANCE_M
 from planning.pose import Pose
 from planning.timing import time_path
 
@@ -387,11 +390,12 @@ def test_a_hand_that_cannot_open_wider_after_the_retreat_opens_at_the_next_appro
     assert all(world.validity()(config) for config in q)
 
 
-def test_a_retreat_keeps_the_transit_clearance_from_parts_in_the_kit(panda):
-    """The open hand retreats from a released plank. A block beside the hand 2 mm from it, where the retreat ends,
-    is within the transit clearance: as a part lying in the kit it blocks the retreat (cabinet_17's shelf retreated
-    1.5-2 mm from a side panel in the kit and grazed it in the simulator), as a placed part it does not (the
-    fingers may pass close to the parts around the one they released)."""
+def test_a_retreat_keeps_its_clearance_from_parts_in_the_kit(panda):
+    """The open hand retreats from a released plank. A block beside the hand, 2 mm from it where the retreat ends
+    (0.5 mm farther than the exact check lets it come), blocks the retreat as a part lying in the kit
+    (``RETREAT_KIT_CLEARANCE_M``: cabinet_17's shelf retreated 1.5-2 mm from a side panel in the kit and grazed it
+    in the simulator), not as a placed part (the fingers may pass close to the parts around the one they
+    released); 5 mm farther it blocks nothing."""
     plank, block = trimesh.creation.box((0.008, 0.4, 0.02)), trimesh.creation.box((0.05, 0.05, 0.05))
     world = CellWorld(panda, Pose.identity(), {}, {"plank": ConvexPart.from_mesh("plank", plank),
                                                    "block": ConvexPart.from_mesh("block", block)},
@@ -405,16 +409,20 @@ def test_a_retreat_keeps_the_transit_clearance_from_parts_in_the_kit(panda):
     def block_at(x: float) -> dict[str, Pose]:
         return {"plank": plank_at, "block": Pose([x, 0.0, 0.3], [1, 0, 0, 0])}
 
-    touching, free = 0.5, 0.9  # block centres (x, m): the block meets the hand at the first, not at the second
+    touching, free = 0.5, 0.9  # block centres (x, m): the exact check fails at the first, passes at the second
     world.set_part_poses(block_at(touching))
     assert not world.validity()(end)
     while free - touching > 1e-5:
         middle = 0.5 * (touching + free)
         world.set_part_poses(block_at(middle))
         touching, free = (middle, free) if not world.validity()(end) else (touching, middle)
-    world.set_part_poses(block_at(free + 0.002))  # 2 mm (plus the link clearance) from the hand
+    assert RETREAT_KIT_CLEARANCE_M > LINK_CLEARANCE_M + 0.0005
+    world.set_part_poses(block_at(free + 0.0005))
     assert world.validity()(end)
     assert not _retreat_validity(world, "plank", frozenset({"block"}))(end)
     assert _retreat_validity(world, "plank", frozenset())(end)
-    world.set_part_poses(block_at(free + 0.002 + TRANSIT_CLEARANCE_M))
+    with pytest.raises(TaskPlanningError, match="segment collides 0 cm along .*block"):  # names what it meets
+        world.straight_line(end, Pose([0.5, 0.0, 0.3], [0.0, 1.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.05]),
+                            _retreat_validity(world, "plank", frozenset({"block"})), "plank", "retreat")
+    world.set_part_poses(block_at(free + 0.005))
     assert _retreat_validity(world, "plank", frozenset({"block"}))(end)
