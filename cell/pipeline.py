@@ -195,18 +195,20 @@ class Pipeline:
                 bars[0].n = round(fraction * bars[0].total)
                 bars[0].refresh()
 
-        def on_retry(part: str, reason: str) -> None:
+        def on_note(text: str) -> None:
+            again = bool(bars)  # a grasp retry within the motion stage: its bar starts again
             for bar in bars:
                 bar.close()
             bars.clear()
-            self.console.say(f"    {reason}\n    planning the motions again with another grasp of {part}")
-            bars.append(self.console.bar(len(build.parts), "part"))
+            self.console.say("\n".join(f"    {line}" for line in text.splitlines()))
+            if again:
+                bars.append(self.console.bar(len(build.parts), "part"))
 
         seconds = self.console.stage_seconds
         try:
             plan = plan_cell(self.scene, build, sequence, seed=self.args.seed,
                              motion=MotionSettings(planner=self.args.planner, seed=self.args.seed),
-                             progress=progress, on_stage=on_stage, on_retry=on_retry)
+                             progress=progress, on_stage=on_stage, on_note=on_note)
         except PlanningFailed as exc:
             for name, value in exc.seconds.items():
                 seconds[name] = seconds.get(name, 0.0) + value

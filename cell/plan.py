@@ -417,12 +417,12 @@ def jig_placed(scene: Scene, turn_deg: float, slide_m: float = 0.0) -> Scene:
 
 def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int = 0,
               motion: MotionSettings | None = None, progress=None, on_stage=None,
-              time_budget_s: float = DEFAULT_TIME_BUDGET_S, on_retry=None) -> CellPlan:
+              time_budget_s: float = DEFAULT_TIME_BUDGET_S, on_note=None) -> CellPlan:
     """Kitting layout, pick-and-place tasks and the timed program for ``assembly`` in ``scene``; raises
     :class:`PlanningFailed` naming the stage and the part. ``on_stage(name, jig_turn_deg, jig_slide_m)`` is
     called as the kitting and the motion stages begin (for each placement of the jig tried); ``progress(fraction)``
-    after each part's motions are planned; ``on_retry(part, reason)`` when the motions are planned again from the
-    first part with ``part``'s next grasp, because of ``reason`` (its last grasp's failure). ``CellPlan.seconds`` holds the time of kitting, motion (OMPL, IK,
+    after each part's motions are planned; ``on_note(text)`` says, in a line or two, why the planner tries again
+    (another grasp of a part, another placement of the jig). ``CellPlan.seconds`` holds the time of kitting, motion (OMPL, IK,
     checks) and timing (Ruckig, with its collision re-check).
 
     Where kitting or motion fail with the jig as the scene places it, the jig is turned by 90, 270 and 180
@@ -434,7 +434,7 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
         raise PlanningFailed("sequence", f"no assembly sequence: {sequence.reason}")
     deadline = time.perf_counter() + time_budget_s
     with PhysicsRestCheck() as rests:  # shared by the turns: a part rests on a pedestal the same anywhere
-        return _plan_turns(scene, assembly, sequence, seed, motion, progress, on_stage, deadline, rests, on_retry)
+        return _plan_turns(scene, assembly, sequence, seed, motion, progress, on_stage, deadline, rests, on_note)
 
 
 def _placement_words(turn_deg: float, slide_m: float) -> str:
@@ -443,7 +443,7 @@ def _placement_words(turn_deg: float, slide_m: float) -> str:
 
 def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int,
                 motion: MotionSettings | None, progress, on_stage, deadline: float,
-                rests: PhysicsRestCheck, on_retry=None) -> CellPlan:
+                rests: PhysicsRestCheck, on_note=None) -> CellPlan:
     failures = []
     spent: dict[str, float] = {}
     too_large = False  # no placement of the jig makes the kitting ring larger
@@ -456,9 +456,11 @@ def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed
             stage = None if on_stage is None else (
                 lambda name, _turn=turn, _slide=slide: on_stage(name, _turn, _slide))
             plan = _plan_with_jig(jig_placed(scene, turn, slide), assembly, sequence, seed, motion, progress,
-                                  stage, deadline, rests, on_retry)
+                                  stage, deadline, rests, on_note)
         except PlanningFailed as exc:
             failures.append((turn, slide, exc))
+            if on_note is not None:
+                on_note(f"{exc.stage} failed with the jig {_placement_words(turn, slide)}: {exc}")
             for name, value in getattr(exc, "seconds", {}).items():
                 spent[name] = spent.get(name, 0.0) + value
             too_large = exc.stage == "kitting" and "too large for this cell" in str(exc)
@@ -586,7 +588,7 @@ class _PlacedBefore:
 
 def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int,
                    motion: MotionSettings | None, progress, on_stage, deadline: float,
-                   rests: PhysicsRestCheck | None = None, on_retry=None) -> CellPlan:
+                   rests: PhysicsRestCheck | None = None, on_note=None) -> CellPlan:
     on_stage = on_stage or (lambda name: None)
     seconds: dict[str, float] = {}
     world_from_assembly = scene.fixture.world_from_assembly
@@ -667,8 +669,8 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
                                      "timing": timing_seconds}
                     raise error from exc
                 failed.pop(0)  # the next grasp for this part
-                if on_retry is not None:
-                    on_retry(exc.part, str(exc))
+                if on_note is not None:
+                    on_note(f"{exc}\nplanning the motions again with another grasp of {exc.part}")
         slots = [dataclasses.replace(s, grasp=options[s.part][0][0], reach=options[s.part][0][1],
                                      alternatives=tuple(options[s.part][1:])) for s in slots]
         seconds["timing"] = timing_seconds
