@@ -19,7 +19,16 @@ from cell.bullet import BulletClient
 from cell.resting import PhysicsRestCheck
 from cell.robot import IKError, IKSettings, Panda, pose_rng
 from cell.scene import Scene
-from cell.task import INSERTION_M, JOINT_LIMIT_MARGIN_RAD, LIFT_M, CellWorld, PartTask, TaskPlan, TaskPlanningError, plan_tasks
+from cell.task import (
+    INSERTION_M,
+    JOINT_LIMIT_MARGIN_RAD,
+    LIFT_M,
+    CellWorld,
+    PartTask,
+    TaskPlan,
+    TaskPlanningError,
+    plan_tasks,
+)
 from planning.assembly import Assembly
 from planning.collision import ConvexPart, box_distance, world_bounds
 from planning.disassembly import SequenceResult
@@ -422,8 +431,8 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
     :class:`PlanningFailed` naming the stage and the part. ``on_stage(name, jig_turn_deg, jig_slide_m)`` is
     called as the kitting and the motion stages begin (for each placement of the jig tried); ``progress(fraction)``
     after each part's motions are planned; ``on_note(text)`` says, in a line or two, why the planner tries again
-    (another grasp of a part, another placement of the jig). ``CellPlan.seconds`` holds the time of kitting, motion (OMPL, IK,
-    checks) and timing (Ruckig, with its collision re-check).
+    (another grasp of a part, another placement of the jig). ``CellPlan.seconds`` holds the time of kitting,
+    motion (OMPL, IK, checks) and timing (Ruckig, with its collision re-check).
 
     Where kitting or motion fail with the jig as the scene places it, the jig is turned by 90, 270 and 180
     degrees (an assembly's grasps may only be reachable from one side); where a part's grasps are all beyond the

@@ -270,7 +270,7 @@ class CellWorld:
                 blocked = next((c for c in np.linspace(path[-1], q, STRAIGHT_LINE_WORDS_SAMPLES) if not valid(c)), q)
                 raise TaskPlanningError("straight_line_blocked", part, stage,
                                         f"the straight {distance * 100:.0f} cm segment collides "
-                                        f"{100 * float(np.linalg.norm(offset_world)) * (k - 1) / steps:.0f} cm "
+                                        f"{distance * 100 * (k - 1) / steps:.0f} cm "
                                         f"along ({self._collision_words(blocked, valid)})")
             path.append(q)
         return np.array(path)

@@ -23,18 +23,18 @@ from cell.task import (
     PartTask,
     TaskPlanningError,
     _among_neighbours_validity,
-    _retreat_validity,
     _insertion,
     _insertion_limits,
     _lead_in,
+    _retreat_validity,
     _slot_entry,
     _timed_insertion,
     plan_tasks,
 )
 from planning.collision import ConvexPart
 from planning.grasp import Grasp
-from planning.robot_collision import LINK_CLEARANCE_M
 from planning.pose import Pose
+from planning.robot_collision import LINK_CLEARANCE_M
 from planning.timing import time_path
 
 BAR = trimesh.creation.box((0.008, 0.19, 0.02))  # a side stretcher (x thin, y long), metres
