@@ -9,9 +9,8 @@ that moves more than :attr:`SimSettings.settle_tolerance_m` is reported (the sta
 kit, a part falls asleep until something touches it or the arm comes to pick it
 (:attr:`SimSettings.kit_sleep_threshold`).
 
-The arm follows the program's samples at ``rate_hz`` (one physics step per sample; while a held part is inserted,
-:attr:`SimSettings.insertion_substeps` steps per sample) under position control with the Franka's joint torque
-limits. A gripper step that narrows the opening closes the fingers (position control,
+The arm follows the program's samples at ``rate_hz`` (one physics step per sample) under position control with the
+Franka's joint torque limits. A gripper step that narrows the opening closes the fingers (position control,
 :attr:`SimSettings.finger_force_n` per finger); the part it names is welded to the hand as soon as each finger
 presses on it with :attr:`SimSettings.grip_force_n` (a real grip holds from contact on), or else when the step
 ends if both fingers touch it; otherwise the grasp fails and is reported. The weld holds the part at the grasp the
@@ -150,7 +149,6 @@ class SimSettings:
     contact_distance_m: float = 0.0  # contact points at this distance or closer (negative: penetration) count
     contact_breaking_m: float = 0.02  # PyBullet's contact breaking threshold (Bullet's default) ...
     insertion_contact_breaking_m: float = 0.005  # ... and while a held part is inserted (see :meth:`_Run._insert`)
-    insertion_substeps: int = 4  # physics steps per program sample while a held part is inserted (see ``_insert``)
     # a part in the kit falls asleep (Bullet's deactivation) once its squared speeds (m/s, rad/s) sum below this for
     # 2 s, until something touches it; from the approach to its pick on it never sleeps (see :meth:`_Run._wake`);
     # None: parts never sleep. PyBullet's solver lets a part resting on its pedestal untouched creep by millimetres
@@ -598,21 +596,12 @@ class _Run:
         ended 4-14 mm off). Not smaller: at 1-2 mm the weld drives a held part pushed onto a neighbour most of the
         way into it (10 of 12 mm where 5 mm stops it 2.7 mm in). Not for the whole carry: parts resting in the
         kit then tipped off their pedestals now and then (a rail standing on its edge on a procedural chair's
-        pedestal, untouched).
-
-        Until the release each program sample is simulated in :attr:`SimSettings.insertion_substeps` physics steps.
-        Bullet's contacts are speculative: a contact still ``d`` apart stops the bodies closing faster than ``d`` per
-        step along its normal. Where a part's lower edge passes a neighbour's top edge with a gap ``g`` beside it,
-        the normal between the edges turns from vertical to horizontal, and a part moving ``v`` per step is pushed
-        back as if it hit the edge unless ``v < 2 g``. At 240 Hz the insertion's 5 cm/s is 0.21 mm a step, more
-        than twice the 0.1 mm a rail had beside each side once those sides had settled 0.2 and 0.08 mm inwards
-        (cabinet_akurum_0011 at scale 0.8): it caught both top edges, twisted 3 degrees in the hand and ended 4.8
-        degrees off. Four steps a sample leave it 0.05 mm a step."""
+        pedestal, untouched)."""
         self.inserting = True
         if self.held not in self.fitted:
             self._let_fit(self.held)
         self.pb.setPhysicsEngineParameter(contactBreakingThreshold=self.settings.insertion_contact_breaking_m,
-                                          numSubSteps=self.settings.insertion_substeps, physicsClientId=self.cid)
+                                          physicsClientId=self.cid)
 
     def _let_fit(self, name: str) -> None:
         """From now on, ``name`` does not collide with the parts it overlaps at their targets."""
@@ -848,8 +837,7 @@ class _Run:
         each other (their contacts could only fight the constraints)."""
         pb, cid, cell = self.pb, self.cid, self.cell
         pb.removeConstraint(self.weld, physicsClientId=cid)
-        pb.setPhysicsEngineParameter(contactBreakingThreshold=self.settings.contact_breaking_m, numSubSteps=1,
-                                     physicsClientId=cid)
+        pb.setPhysicsEngineParameter(contactBreakingThreshold=self.settings.contact_breaking_m, physicsClientId=cid)
         self.inserting = False
         name, self.held, self.weld = self.held, None, None
         self.released_from_hand = name

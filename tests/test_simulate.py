@@ -472,9 +472,8 @@ def test_a_rail_passes_the_top_edges_beside_it_with_a_tenth_of_a_millimetre_to_s
     """A rail held at its middle comes straight down at about 5 cm/s between two sides whose tops are flush with
     its target's top, its body 0.1 mm from each (cabinet_akurum_0011's back rail once its sides had settled 0.2 and
     0.08 mm inwards): its lower edges pass the sides' top edges and it lands on its pad, level. On the whole
-    cabinet, one physics step per program sample, that rail caught both edges and ended 4.8 degrees off; this
-    two-sided test does not reproduce that (the cabinet does, see ``SimSettings.insertion_substeps``), it guards
-    the fit itself."""
+    cabinet (at scale 0.8) that rail caught both edges and ended 4.8 degrees off; this two-sided test does not
+    reproduce that, it guards the fit itself."""
     gap_m = 0.0001
     length_m, height_m = 0.16, 0.02
     rail = SimPart("rail", box((length_m, 0.04, height_m)), at(0.35, 0.3, 0.04 + 0.5 * height_m),
