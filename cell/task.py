@@ -43,7 +43,13 @@ from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS, IKErro
 from planning.collision import ConvexPart, shrunk, signed_distance
 from planning.grasp import APPROACH_M, Grasp
 from planning.gripper import MAX_OPENING_M
-from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path, straight_line_valid
+from planning.motion import (
+    MotionPlanningError,
+    MotionSettings,
+    first_invalid_on_line,
+    plan_joint_path,
+    straight_line_valid,
+)
 from planning.payload import JointTorques, MassProperties, carry_limits
 from planning.pose import Pose
 from planning.robot_collision import RobotCollisionChecker
@@ -70,7 +76,6 @@ NEAR_END_RAD = 0.15  # ... except this close (joint-space distance) to an end th
 # the retreat's links and fingers keep this from the parts lying in the kit (the exact check keeps LINK_CLEARANCE_M,
 # 1.5 mm, within which PyBullet's link hulls, padded about 1.1 mm, touch a part that settled a little on its pedestal)
 RETREAT_KIT_CLEARANCE_M = 0.0025
-STRAIGHT_LINE_WORDS_SAMPLES = 50  # a blocked straight line names what it meets at the first of these that collides
 SLIDE_CLEARANCE_M = 0.004  # a part inserted along a neighbour's face comes down this far off it
 SLIDE_SAMPLES = 5  # poses along the insertion where the neighbours it slides along are looked for
 SIDE_NORMAL_MAX_COS = 0.3  # a contact normal this close to perpendicular to the insertion is a neighbour's side
@@ -266,8 +271,8 @@ class CellWorld:
                                         f"straight line leaves the reachable space: {exc}") from exc
             if np.max(np.abs(q - path[-1])) > MAX_JOINT_STEP_RAD:
                 raise TaskPlanningError("no_ik", part, stage, "straight line needs a jump between IK branches")
-            if not straight_line_valid(valid, path[-1], q):
-                blocked = next((c for c in np.linspace(path[-1], q, STRAIGHT_LINE_WORDS_SAMPLES) if not valid(c)), q)
+            blocked = first_invalid_on_line(valid, path[-1], q)
+            if blocked is not None:
                 raise TaskPlanningError("straight_line_blocked", part, stage,
                                         f"the straight {distance * 100:.0f} cm segment collides "
                                         f"{distance * 100 * (k - 1) / steps:.0f} cm "

@@ -67,12 +67,20 @@ def _seed_once(ou, seed: int) -> None:
             _seeded = seed
 
 
+def first_invalid_on_line(is_valid: Callable[[np.ndarray], bool], q_from: np.ndarray, q_to: np.ndarray,
+                          step_rad: float = 0.01) -> np.ndarray | None:
+    """The first invalid configuration on the straight joint-space segment (checked every ``step_rad`` from
+    ``q_from``), or None."""
+    distance = float(np.max(np.abs(np.asarray(q_to) - np.asarray(q_from))))
+    steps = max(1, int(np.ceil(distance / step_rad)))
+    return next((q for q in (q_from + (q_to - q_from) * (k / steps) for k in range(steps + 1)) if not is_valid(q)),
+                None)
+
+
 def straight_line_valid(is_valid: Callable[[np.ndarray], bool], q_from: np.ndarray, q_to: np.ndarray,
                         step_rad: float = 0.01) -> bool:
     """Whether every configuration on the straight joint-space segment (checked every ``step_rad``) is valid."""
-    distance = float(np.max(np.abs(np.asarray(q_to) - np.asarray(q_from))))
-    steps = max(1, int(np.ceil(distance / step_rad)))
-    return all(is_valid(q_from + (q_to - q_from) * (k / steps)) for k in range(steps + 1))
+    return first_invalid_on_line(is_valid, q_from, q_to, step_rad) is None
 
 
 def _segment_validator(ob, information, segment_valid: Callable[[np.ndarray, np.ndarray], bool], dof: int):
