@@ -368,8 +368,9 @@ class _Cell:
             if name in index_of:
                 pb.changeDynamics(self.robot, index_of[name], mass=mass, localInertiaDiagonal=inertia,
                                   physicsClientId=cid)
-        for pair in ALLOWED_SELF_PAIRS:  # neighbours and pairs whose hulls overlap in every configuration
-            a, b = sorted(pair)
+        # neighbours and pairs whose hulls overlap in every configuration; sorted, as every set whose order reaches
+        # PyBullet here: Bullet's results depend on the order of its calls, and a set's order on PYTHONHASHSEED
+        for a, b in sorted(tuple(sorted(pair)) for pair in ALLOWED_SELF_PAIRS):
             if a in index_of and b in index_of:
                 pb.setCollisionFilterPair(self.robot, self.robot, index_of[a], index_of[b], 0, physicsClientId=cid)
 
@@ -605,7 +606,7 @@ class _Run:
 
     def _let_fit(self, name: str) -> None:
         """From now on, ``name`` does not collide with the parts it overlaps at their targets."""
-        for other in self.overlap_partners.get(name, ()):
+        for other in sorted(self.overlap_partners.get(name, ())):
             self.pb.setCollisionFilterPair(self.cell.parts[name], self.cell.parts[other], -1, -1, 0,
                                            physicsClientId=self.cid)
         self.fitted.add(name)
@@ -643,7 +644,7 @@ class _Run:
         pb, cid, robot = self.pb, self.cid, self.cell.robot
         if self.held is not None and role.place_of == self.held and not self.inserting:
             self._insert()
-        for name in role.robot_may_touch - self.awake:  # the part to be picked (or just released)
+        for name in sorted(role.robot_may_touch - self.awake):  # the part to be picked (or just released)
             self._wake(name)
         pb.setJointMotorControlArray(robot, self.cell.panda.arm, pb.POSITION_CONTROL,
                                      targetPositions=q_target.tolist(), targetVelocities=qd_target.tolist(),
