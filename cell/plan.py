@@ -456,11 +456,14 @@ def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed
     failures = []
     spent: dict[str, float] = {}
     too_large = False  # no placement of the jig makes the kitting ring larger
+    why_again = None  # the last failure, said once another placement is tried (the final error lists them all)
     for turn, slide in ((turn, slide) for turn in JIG_TURNS_DEG for slide in (0.0, JIG_SLIDE_M)):
         if too_large or failures and time.perf_counter() > deadline:
             break
         if slide and not (failures[-1][0] == turn and failures[-1][2].beyond_reach):
             continue  # slid only where the arm did not reach a part's target at this turn
+        if why_again is not None and on_note is not None:
+            on_note(why_again)
         try:
             stage = None if on_stage is None else (
                 lambda name, _turn=turn, _slide=slide: on_stage(name, _turn, _slide))
@@ -468,8 +471,7 @@ def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed
                                   stage, deadline, rests, on_note)
         except PlanningFailed as exc:
             failures.append((turn, slide, exc))
-            if on_note is not None:
-                on_note(f"{exc.stage} failed with the jig {_placement_words(turn, slide)}: {exc}")
+            why_again = f"{exc.stage} failed with the jig {_placement_words(turn, slide)}: {exc}"
             for name, value in getattr(exc, "seconds", {}).items():
                 spent[name] = spent.get(name, 0.0) + value
             too_large = exc.stage == "kitting" and "too large for this cell" in str(exc)
