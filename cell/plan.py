@@ -23,6 +23,7 @@ from cell.task import (
     INSERTION_M,
     JOINT_LIMIT_MARGIN_RAD,
     LIFT_M,
+    RETREAT_KIT_CLEARANCE_M,
     CellWorld,
     PartTask,
     TaskPlan,
@@ -184,6 +185,11 @@ class _KitReach(Reach):
         self.payloads = dict(payloads or {})  # a held part's weight must be held at its configurations too
         self.targets, self.meshes, self.order, self.insertion = targets, meshes, order, insertion
         self.checker = RobotCollisionChecker(scene.robot.world_from_base.matrix(), {})
+        # the task planner's retreat keeps RETREAT_KIT_CLEARANCE_M from the parts in the kit: so does kitting's
+        self.kit_checker = RobotCollisionChecker(scene.robot.world_from_base.matrix(), {},
+                                                 link_clearance_m=RETREAT_KIT_CLEARANCE_M,
+                                                 finger_clearance_m=RETREAT_KIT_CLEARANCE_M)
+        self._part_meshes = {id(mesh) for mesh in meshes.values()}
         table = _table(scene)
         self._convex: dict[int, tuple[trimesh.Trimesh, ConvexPart]] = {}  # id(mesh) -> (mesh, its convex pieces)
         self.table = {"table": (self._convex_part(table.mesh), table.world_from_obstacle.matrix())}
@@ -216,14 +222,16 @@ class _KitReach(Reach):
     def _chain(self, poses: list[Pose], seed: np.ndarray | None,
                checks: list[tuple[frozenset[str], frozenset[str]]] | None,
                load: JointTorques | None = None, held: tuple[bool, ...] = (), elsewhere: bool = False,
-               first_ik: IKSettings | None = None, segments: tuple[tuple[int, int, int], ...] = ()):
+               first_ik: IKSettings | None = None, segments: tuple[tuple[int, int, int], ...] = (),
+               accept=None):
         """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its (ignore, hand_ignore)
         sets (see :meth:`RobotCollisionChecker.first_invalid`; no collision check when ``checks`` is None), the
         joint-space ``segments`` (from, to, index of the checks) between them valid too, and, where ``held``,
         holding the ``load``; or None. The first attempt starts from ``seed``; the others from where
         the last one left the arm, or, ``elsewhere``, from random configurations (the arm is redundant: another
         elbow may clear what the first one meets). The first pose's inverse kinematics uses ``first_ik`` (default:
-        the planner's settings, few restarts), the others start from the pose before."""
+        the planner's settings, few restarts), the others start from the pose before. ``accept(configurations)``,
+        where given, must hold too."""
         self.chain_unreached = True  # no attempt found inverse kinematics for every pose
         if not all(self._within_reach(pose) for pose in poses):
             return None
@@ -249,7 +257,8 @@ class _KitReach(Reach):
                     for q, (ignore, hand_ignore) in zip(configurations, checks))
                 and all(self.checker.segment_valid(configurations[a], configurations[b], ignore=checks[k][0],
                                                    hand_ignore=checks[k][1], max_step_m=KIT_SEGMENT_STEP_M)
-                        for a, b, k in segments))
+                        for a, b, k in segments)
+                and (accept is None or accept(configurations)))
             if load is not None and not all(load.within(q[None])[0] for q, h in zip(configurations, held) if h):
                 self.too_heavy += int(free)  # it would have worked, but for the part's weight
                 continue
@@ -302,8 +311,10 @@ class _KitReach(Reach):
             poses = self._at_target_world(part, grasp, kit)
             # the part is in the hand at the release and the pre-place, not at the retreat's end
             checks, load = list(self._AT_TARGET_IGNORES), self._load(part, grasp)
+            retreat_clear = (None if not kit else
+                             lambda configurations: self._retreat_clear(configurations, grasp.opening_m, kit))
             found = self._chain(poses, self.home_q, checks, load, (True, True, False), elsewhere=bool(kit),
-                                segments=self._TARGET_SEGMENTS)
+                                segments=self._TARGET_SEGMENTS, accept=retreat_clear)
             reached = not self.chain_unreached
             if found is None and not kit:  # harder: other elbows, and more starts for the release (the first
                 # attempts start at home and near each other)
@@ -365,9 +376,9 @@ class _KitReach(Reach):
         # (solved again once per layout so far, the other slots' bodies; again with the part's own support only
         # where those configurations meet it: keyed on the support, that search ran at every place tried)
         kit = list(obstacles) + list(support)
-        if target is not None and not self.still_clear((target, (), grasp.opening_m), kit):
+        if target is not None and not self.still_clear(((), target, grasp.opening_m), kit):
             target = self.at_target(part, grasp, list(obstacles))
-            if target is not None and support and not self.still_clear((target, (), grasp.opening_m), kit):
+            if target is not None and support and not self.still_clear(((), target, grasp.opening_m), kit):
                 target = self.at_target(part, grasp, kit)
         if target is None:
             return None
@@ -392,13 +403,33 @@ class _KitReach(Reach):
 
     def still_clear(self, reach, obstacles) -> bool:
         """Whether the arm configurations of ``reach`` (at the pick and at the target), and the straight lines
-        between them, touch neither the table nor ``obstacles`` (kitting parts and pedestals)."""
+        between them, touch neither the table nor ``obstacles`` (kitting parts and pedestals), the retreat at the
+        target keeping :data:`RETREAT_KIT_CLEARANCE_M` from the parts (see :meth:`_retreat_clear`)."""
         self.checker.set_obstacles(self._world(list(obstacles), []))
         self.checker.hold(None, opening_m=reach[2])
         return (all(self.checker.is_valid(q) for q in reach[0] + reach[1])
                 and all(self.checker.segment_valid(configurations[a], configurations[b], max_step_m=KIT_SEGMENT_STEP_M)
                         for configurations in reach[:2] if len(configurations) == 3
-                        for a, b in self._STRAIGHT_LINES))
+                        for a, b in self._STRAIGHT_LINES)
+                and (len(reach[1]) != 3 or self._retreat_clear(reach[1], reach[2], obstacles)))
+
+    _RETREAT = _TARGET_SEGMENTS[1][:2]  # at the target: from the release to the end of the retreat
+
+    def _retreat_clear(self, at_target, opening_m: float, kit) -> bool:
+        """Whether the retreat at the target (release to retreat's end, the hand opened to ``opening_m``) keeps
+        :data:`RETREAT_KIT_CLEARANCE_M` from the parts among the ``kit`` bodies (their pedestals are checked
+        exactly, as by the task planner). Checked exactly only, cabinet_11's bottom was kitted with a retreat that
+        passed within it of drawer_1_side_left lying in the kit: the task planner refused the retreat and, with
+        no other grasp of the bottom left, the jig's placement."""
+        parts = [body for body in kit if id(body[0]) in self._part_meshes]
+        if not parts:
+            return True
+        self.kit_checker.set_obstacles({f"kit {k}": (self._convex_part(mesh), pose.matrix())
+                                        for k, (mesh, pose) in enumerate(parts)})
+        self.kit_checker.hold(None, opening_m=opening_m)
+        start, end = (np.asarray(at_target[index]) for index in self._RETREAT)
+        return self.kit_checker.is_valid(start) and self.kit_checker.segment_valid(start, end,
+                                                                                   max_step_m=KIT_SEGMENT_STEP_M)
 
 
 JIG_TURNS_DEG = (0.0, 90.0, 270.0, 180.0)

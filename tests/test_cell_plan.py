@@ -37,11 +37,11 @@ def test_the_arm_at_a_target_takes_other_configurations_where_the_first_meet_the
         frames = reach.checker.link_frames(np.array(first[0])[None])[0]
         forearm = 0.5 * (frames[4, :3, 3] + frames[5, :3, 3])  # between the elbow (joint 4) and the wrist (joint 5)
         kit = [(trimesh.creation.box((0.05, 0.05, 0.05)), Pose(forearm, [1.0, 0.0, 0.0, 0.0]))]
-        assert not reach.still_clear((first, (), grasp.opening_m), kit)
+        assert not reach.still_clear(((), first, grasp.opening_m), kit)
         found = reach.at_pick("board", grasp, pick, kit)
         assert found is not None
         picked, placed, opening = found
-        assert reach.still_clear((placed, (), opening), kit) and reach.still_clear((picked, (), opening), kit)
+        assert reach.still_clear(((), placed, opening), kit) and reach.still_clear((picked, (), opening), kit)
         assert np.linalg.norm(np.array(placed[0]) - np.array(first[0])) > 0.1  # another arm configuration
         for q, expected in zip(placed[:1], [target @ grasp.part_from_tcp]):
             assert np.allclose(reach.checker.world_from_tcp(np.array(q))[:3, 3], expected.position, atol=1e-3)
@@ -168,3 +168,46 @@ def test_a_grasp_at_the_target_keeps_its_closed_fingers_clear_of_a_neighbour_flu
     assert grasps_clear_at_target([grasp], target, plates, down, 0.0) == []
     lower = [(mesh, Pose(pose.position - np.array([0.0, 0.0, 0.04]), pose.quat_wxyz)) for mesh, pose in plates]
     assert grasps_clear_at_target([grasp], target, lower, down, 0.0) != []  # below the fingertips
+
+
+def test_a_retreat_at_the_target_keeps_its_clearance_from_parts_in_the_kit():
+    """Kitting accepts a grasp's arm configurations at the target only where the retreat keeps the task planner's
+    RETREAT_KIT_CLEARANCE_M from the parts lying in the kit (cabinet_11's bottom was kitted with a retreat that the
+    task planner then refused). A part in the kit a fraction of a millimetre off the hand's path up from the
+    release (clear, checked exactly) spoils the configurations; a pedestal there does not (checked exactly, as by
+    the task planner); the same part 3 mm farther off does not either."""
+    from cell.task import RETREAT_KIT_CLEARANCE_M
+
+    scene = load_scene()
+    top_z = scene.table.top_z
+    target = Pose([0.55, 0.0, top_z + 0.15], [1.0, 0.0, 0.0, 0.0])
+    grasp = Grasp(Pose([0.0, 0.0, 0.038], DOWN_TCP), width_m=0.02, opening_m=0.04, score=1.0, centroid_score=1.0,
+                  contact_score=1.0)
+    kit_part = trimesh.creation.box((0.04, 0.04, 0.04))  # beside the hand at the release, world frame
+    with BulletClient() as client:
+        panda = Panda(client, scene.robot.world_from_base)
+        reach = _KitReach(panda, scene, 1, np.array(scene.robot.home_q), {"board": target, "post": target},
+                          {"board": BOARD, "post": kit_part}, ["board", "post"],
+                          {"board": np.array([0.0, 0.0, -1.0]), "post": np.array([0.0, 0.0, -1.0])})
+        at_target = reach.at_target("board", grasp)
+        assert at_target is not None
+        tcp = reach.checker.world_from_tcp(np.array(at_target[0]))[:3, 3]
+
+        def post_at(offset_m: float, mesh=kit_part):
+            return [(mesh, Pose(tcp + [offset_m, 0.0, 0.03], [1.0, 0.0, 0.0, 0.0]))]
+
+        def exactly_clear(offset_m: float) -> bool:  # the pedestal's check: a copy of the mesh is no part
+            return reach.still_clear(((), at_target, grasp.opening_m), post_at(offset_m, kit_part.copy()))
+
+        near, far = 0.0, 0.3  # the box beside the hand along +x: touching at `near`, clear at `far`
+        assert not exactly_clear(near) and exactly_clear(far)
+        while far - near > 1e-4:
+            middle = 0.5 * (near + far)
+            near, far = (near, middle) if exactly_clear(middle) else (middle, far)
+        assert exactly_clear(far)  # a pedestal there: clear
+        assert not reach.still_clear(((), at_target, grasp.opening_m), post_at(far))  # a part there: too near
+        assert reach.still_clear(((), at_target, grasp.opening_m), post_at(far + RETREAT_KIT_CLEARANCE_M + 5e-4))
+        # asked for configurations clear of the part there, kitting finds ones whose retreat keeps the clearance
+        found = reach.at_target("board", grasp, post_at(far))
+        if found is not None:
+            assert reach.still_clear(((), found, grasp.opening_m), post_at(far))
