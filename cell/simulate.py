@@ -90,14 +90,7 @@ from planning.pose import Pose
 from planning.robot_collision import ALLOWED_SELF_PAIRS, ARM_JOINTS
 
 FIXTURE = "fixture"  # the name in ``fasten_to`` that stands for the jig (the static bodies under the target)
-MIN_RATE_HZ = 240.0  # the issue's floor for position control of the arm
-# physics steps per second by default: at 240 Hz a part lowered between two others with a tenth of a millimetre beside
-# each end moves 0.2 mm a step and caught their top edges (cabinet_akurum_0011's back rail twisted 3 degrees in the
-# hand, ending 4.8 degrees off); at 480 Hz it passes, and chair_ivar_0668's side, pushed onto the seat's tenons,
-# ends within 0.1 mm instead of 6 mm. 960 Hz lost that chair's grasp of the side (one finger pressed on it, the
-# other not) and takes twice as long again. Switching the rate (Bullet's substeps) only for insertions disturbed the
-# parts resting in the kit (cabinet_14's drawer back slid 4 mm on its pedestal), so the whole run is at one rate.
-DEFAULT_RATE_HZ = 480.0
+MIN_RATE_HZ = 240.0
 KIT_HOLD_CHECK_S = 0.25  # how often untouched kit parts at rest are put back where they came to rest
 ARM_TORQUE_LIMITS_NM = PANDA_TORQUE_LIMITS_NM  # Franka's published joint torque limits
 LINK_DYNAMICS = PANDA_LINK_DYNAMICS  # identified link masses and inertias (planning/payload.py)
@@ -133,7 +126,7 @@ class StaticBody:
 class SimSettings:
     """How to simulate and what counts as success (metres, degrees, seconds, newtons as the names say)."""
 
-    rate_hz: float = DEFAULT_RATE_HZ  # physics steps per second, one program sample per step (>= 240)
+    rate_hz: float = MIN_RATE_HZ  # physics steps per second, one program sample per step (>= 240)
     position_tolerance_m: float = 0.005  # a part's centre within this of its target ...
     rotation_tolerance_deg: float = 3.0  # ... and turned by less than this (modulo its symmetries) is placed
     settle_s: float = 0.5  # the world settles this long before the program and again after it

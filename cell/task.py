@@ -86,7 +86,7 @@ INSERTION_SPEED_M_S = 0.05  # the TCP's top speed (m/s) while a part goes into i
 # at the timing's default (MAX_DEVIATION_RAD) carried a cabinet top 0.5 mm sideways off its line between IK points
 # 2 cm apart; it caught on a side's edge and tilted 7 degrees. With INSERTION_STEP_M the TCP keeps within 0.04 mm
 INSERTION_DEVIATION_RAD = 1e-4
-TORQUE_CHECK_HZ = 250.0  # a timed motion's torques are checked at this rate (above the 240 Hz floor of the simulator's rate)
+TORQUE_CHECK_HZ = 250.0  # a timed motion's torques are checked at this rate (the simulator steps at 240 Hz)
 TORQUE_RETIMINGS = 4  # at most this many slower timings of one motion for its torques
 TORQUE_SCALE_MARGIN = 0.9  # each slower timing scales accelerations by this much more than the torques ask
 LIMIT_FRACTION = 0.9  # motions are planned at this fraction of the published limits: headroom for tracking

@@ -137,8 +137,7 @@ def _sway_of_top_mm(mesh: trimesh.Trimesh, chocks, nudge_rad_s: float = 0.2) -> 
 def test_a_thin_panel_standing_on_its_edge_gets_chocks_tall_enough_to_keep_it_upright():
     """A 3 mm hardboard panel 25 cm tall standing on its edge (as a cabinet's back stands in its assembly): its
     chocks rise far enough that, nudged, it leans on them by millimetres at the top, where the fingers take it
-    (they open 5 mm beyond each face); on 1 cm chocks (those that cradle a round leg) it leaned by centimetres.
-    Nudged at 0.3 rad/s: at the simulator's 480 Hz, 0.2 rad/s (enough at 240 Hz) left it upright on either."""
+    (they open 5 mm beyond each face); on 1 cm chocks (those that cradle a round leg) it leaned by centimetres."""
     panel = trimesh.creation.box((0.55, 0.003, 0.254))
     _, _, stable, chocks = _on_pedestal(panel)
     assert not stable and chocks
@@ -146,8 +145,8 @@ def test_a_thin_panel_standing_on_its_edge_gets_chocks_tall_enough_to_keep_it_up
     assert rise >= 0.03
     low = tuple((size[:2] + (PEDESTAL_HEIGHT_M + 0.01,), Pose(pose.position * [1, 1, 0] + [0, 0, 0.005],
                                                             pose.quat_wxyz)) for size, pose in chocks)
-    assert _sway_of_top_mm(panel, chocks, 0.3) < 10.0
-    assert _sway_of_top_mm(panel, low, 0.3) > 20.0
+    assert _sway_of_top_mm(panel, chocks) < 10.0
+    assert _sway_of_top_mm(panel, low) > 20.0
 
 
 @pytest.mark.parametrize("thickness_m, height_m", [(0.003, 0.254), (0.011, 0.128)])
@@ -155,8 +154,7 @@ def test_a_panel_nudged_onto_its_chocks_moves_its_top_no_farther_than_kitting_al
     """Nudged harder and harder, a panel standing between its chocks leans onto them (its foot sliding the other
     way) and its top ends up to about a centimetre from where it stood: within :func:`standing_lean_m`, which
     kitting opens the hand by on each side at its pick, and beyond what the chocks' clearance alone gives
-    (the simulated part is inset; cabinet_13's drawer side leaned onto a finger planned with 5 mm to spare). At the
-    simulator's 480 Hz the thicker panel takes a nudge of 3 rad/s to lean onto its chocks."""
+    (the simulated part is inset; cabinet_13's drawer side leaned onto a finger planned with 5 mm to spare)."""
     from planning.kitting import CHOCK_CLEARANCE_M, standing_lean_m
 
     panel = trimesh.creation.box((0.3, thickness_m, height_m))
@@ -165,7 +163,7 @@ def test_a_panel_nudged_onto_its_chocks_moves_its_top_no_farther_than_kitting_al
     rise = max(size[2] for size, _ in chocks) - PEDESTAL_HEIGHT_M
     pedestal = dataclasses.replace(pedestal_for((0.15, 0.05), IDENTITY, PEDESTAL_HEIGHT_M), chocks=chocks)
     allowed_mm = 1000 * standing_lean_m(panel, upright_rest_pose(panel, np.eye(3)), pedestal, PEDESTAL_HEIGHT_M)
-    sways = [_sway_of_top_mm(panel, chocks, nudge) for nudge in (0.2, 0.5, 1.0, 2.0, 3.0)]
+    sways = [_sway_of_top_mm(panel, chocks, nudge) for nudge in (0.2, 0.5, 1.0, 2.0)]
     assert max(sways) <= allowed_mm
     assert max(sways) > 1000 * CHOCK_CLEARANCE_M * height_m / rise  # leaning on the chocks' clearance alone
 

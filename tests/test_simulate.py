@@ -386,7 +386,7 @@ def test_closing_fingers_seat_a_part_turned_about_any_axis_but_the_closing_one(t
 def test_a_part_at_rest_in_the_kit_sleeps_until_touched(threshold):
     """A board standing on its edge on a pedestal, turned 0.3 rad about +z, settles and falls asleep (Bullet's
     deactivation): its pose stays exactly where it is over the next 20 s. Awake, PyBullet's solver lets it creep
-    (here about 0.03 mm in 20 s at 480 Hz, 0.5 mm at 240 Hz; a drawer front on a procedural cabinet's kit crept 4.7 mm and was grasped that far
+    (here about 0.5 mm in 20 s; a drawer front on a procedural cabinet's kit crept 4.7 mm and was grasped that far
     off). Pushed by another body, the sleeping board wakes and moves; picking a part that has been asleep is
     covered by the programs above (b is picked long after it fell asleep)."""
     from cell.simulate import _Cell
@@ -411,7 +411,7 @@ def test_a_part_at_rest_in_the_kit_sleeps_until_touched(threshold):
         settled = run(3.0)
         later = run(20.0)
         if threshold is None:
-            assert np.linalg.norm(later - settled) > 1e-5
+            assert np.linalg.norm(later - settled) > 1e-4
             return
         assert np.all(later == settled)
         normal = np.array([-np.sin(2 * half), np.cos(2 * half), 0.0])  # the board's face, world frame
