@@ -504,7 +504,6 @@ def test_a_rail_passes_the_top_edges_beside_it_with_a_tenth_of_a_millimetre_to_s
     assert not result.contacts, result.contacts
 
 
-
 # two cubes side by side on a long pad and a bar laid across both, sunk 5 mm into each (so that the bar's collision
 # with both is switched off at its insertion, in an order that must not follow PYTHONHASHSEED)
 CUBE_M = 0.04
@@ -538,7 +537,8 @@ with BulletClient() as client:
         steps += more
 program = Program(steps + [MotionStep("return home", t.timed(q, t.HOME))], initial_width_m=t.OPENING_M)
 result = t.simulate_program(program, t.ACROSS, t.ACROSS_STATIC, t.BASE)
-print(json.dumps({"set_order": list({part.name for part in t.ACROSS}), "success": result.success, "why": result.failure_words(),
+print(json.dumps({"set_order": list({part.name for part in t.ACROSS}), "success": result.success,
+                  "why": result.failure_words(),
                   "final": [[p.name, p.world_from_final.to_dict()] for p in result.parts]}))
 """
 
