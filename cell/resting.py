@@ -7,7 +7,7 @@ friction, and a real mesh (open, a frame of round tubes, a board with a bevelled
 and slide or tip over in the second: a chair's side frame of tubes standing on two narrow feet between 1 cm
 chocks falls over within a second, a board stacked on a bevelled one slides off it, and later the fingers close
 on air. :class:`PhysicsRestCheck` drops the bodies where the layout puts them in a headless PyBullet client built
-as :mod:`cell.simulate` builds its cell (same bodies, friction, density, rate and gravity) and says whether every
+as :mod:`cell.simulate` builds its cell (same bodies, friction, density and physics settings) and says whether every
 loose one stays put. :meth:`PhysicsRestCheck.settle` lets them come to rest first and says where they lie (for a
 part that rests on its pedestal only once it has tipped onto it: a dished board on a pedestal inset from its rim,
 a tapered leg).
@@ -26,7 +26,7 @@ import trimesh
 
 from cell.bodies import add_convex_body
 from cell.bullet import BulletClient
-from cell.simulate import SimSettings
+from cell.simulate import SimSettings, configure_physics
 from planning.convex import mesh_key
 from planning.payload import MassProperties, mass_properties
 from planning.pose import Pose
@@ -100,8 +100,7 @@ class PhysicsRestCheck:
         pb, cid, settings = self._client.pb, self._client.client_id, self.settings
         self.checks += 1
         pb.resetSimulation(physicsClientId=cid)
-        pb.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
-        pb.setTimeStep(1.0 / settings.rate_hz, physicsClientId=cid)
+        configure_physics(pb, cid, settings)
         folder = Path(self._folder.name)
         for mesh, world_from_body in fixed:
             add_convex_body(pb, cid, folder, mesh, world_from_body, None, settings.friction,

@@ -91,6 +91,10 @@ from planning.robot_collision import ALLOWED_SELF_PAIRS, ARM_JOINTS
 
 FIXTURE = "fixture"  # the name in ``fasten_to`` that stands for the jig (the static bodies under the target)
 MIN_RATE_HZ = 240.0
+DEFAULT_RATE_HZ = 480.0
+PYBULLET_CONTACT_ERP = 0.08
+"""PyBullet's default contact ERP (Bullet's ``erp2``), chosen for its default 240 Hz and 50 solver iterations: each
+step pushes a penetration out by this fraction of its depth."""
 KIT_HOLD_CHECK_S = 0.25  # how often untouched kit parts at rest are put back where they came to rest
 ARM_TORQUE_LIMITS_NM = PANDA_TORQUE_LIMITS_NM  # Franka's published joint torque limits
 LINK_DYNAMICS = PANDA_LINK_DYNAMICS  # identified link masses and inertias (planning/payload.py)
@@ -126,7 +130,12 @@ class StaticBody:
 class SimSettings:
     """How to simulate and what counts as success (metres, degrees, seconds, newtons as the names say)."""
 
-    rate_hz: float = MIN_RATE_HZ  # physics steps per second, one program sample per step (>= 240)
+    rate_hz: float = DEFAULT_RATE_HZ  # physics steps per second, one program sample per step (>= 240)
+    # how fast a penetration is pushed out: this fraction of its depth per second (Bullet's contact ERP is this over
+    # the rate); PyBullet's default ERP of 0.08 is 19.2 per second at 240 Hz, kept at any rate. Left at 0.08, 480 Hz
+    # pushes out twice as fast, and a held part pushed out of a chock while it was lifted (chair_bertil_0148) kicked
+    # the arm past joint 7's velocity limit
+    contact_recovery_per_s: float = PYBULLET_CONTACT_ERP * MIN_RATE_HZ
     position_tolerance_m: float = 0.005  # a part's centre within this of its target ...
     rotation_tolerance_deg: float = 3.0  # ... and turned by less than this (modulo its symmetries) is placed
     settle_s: float = 0.5  # the world settles this long before the program and again after it
@@ -148,7 +157,7 @@ class SimSettings:
     fasten_distance_m: float = 0.002  # a released part this much farther from a neighbour than planned is not fastened
     contact_distance_m: float = 0.0  # contact points at this distance or closer (negative: penetration) count
     contact_breaking_m: float = 0.02  # PyBullet's contact breaking threshold (Bullet's default) ...
-    insertion_contact_breaking_m: float = 0.005  # ... and while a held part is inserted (see :meth:`_Run._insert`)
+    insertion_contact_breaking_m: float = 0.0025  # ... and while a held part is inserted (see :meth:`_Run._insert`)
     # a part in the kit falls asleep (Bullet's deactivation) once its squared speeds (m/s, rad/s) sum below this for
     # 2 s, until something touches it; from the approach to its pick on it never sleeps (see :meth:`_Run._wake`);
     # None: parts never sleep. PyBullet's solver lets a part resting on its pedestal untouched creep by millimetres
@@ -169,6 +178,9 @@ class SimSettings:
     def __post_init__(self) -> None:
         if not self.rate_hz >= MIN_RATE_HZ:
             raise ValueError(f"SimSettings.rate_hz must be at least {MIN_RATE_HZ:.0f} Hz, got {self.rate_hz}")
+        if not 0.0 < self.contact_recovery_per_s <= self.rate_hz:
+            raise ValueError("SimSettings.contact_recovery_per_s must be positive and at most rate_hz (an ERP of at "
+                             f"most 1), got {self.contact_recovery_per_s} at {self.rate_hz} Hz")
         for name in ("position_tolerance_m", "rotation_tolerance_deg", "density_kg_m3", "finger_force_n",
                      "finger_speed_m_s", "grasp_contact_m", "fasten_distance_m", "contact_breaking_m",
                      "insertion_contact_breaking_m"):
@@ -182,6 +194,21 @@ class SimSettings:
                 raise ValueError(f"SimSettings.{name} must not be negative, got {getattr(self, name)}")
         if self.record_every_s is not None and not self.record_every_s > 0:
             raise ValueError(f"SimSettings.record_every_s must be positive or None, got {self.record_every_s}")
+
+    @property
+    def contact_erp(self) -> float:
+        """Bullet's contact ERP at :attr:`rate_hz` (see :attr:`contact_recovery_per_s`)."""
+        return self.contact_recovery_per_s / self.rate_hz
+
+
+def configure_physics(pb, cid: int, settings: SimSettings) -> None:
+    """Gravity (-9.81 m/s^2 along world -z), the time step, the contact breaking threshold and the contact ERP of
+    :class:`SimSettings`, in client ``cid``: every client that should behave as the simulation does (the rest
+    check of :mod:`cell.resting` too) is set up here."""
+    pb.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
+    pb.setTimeStep(1.0 / settings.rate_hz, physicsClientId=cid)
+    pb.setPhysicsEngineParameter(contactBreakingThreshold=settings.contact_breaking_m,
+                                 contactERP=settings.contact_erp, physicsClientId=cid)
 
 
 # --- results --------------------------------------------------------------------------------------------------------
@@ -594,8 +621,11 @@ class _Run:
         each side's top edge from above; with the default, PyBullet keeps that contact and refreshes it along its
         first, nearly vertical, normal while the top moves down past the edge, so the gap beside it reads as a
         penetration and the solver jams the top centimetres high (traced on procedural cabinets, whose tops then
-        ended 4-14 mm off). Not smaller: at 1-2 mm the weld drives a held part pushed onto a neighbour most of the
-        way into it (10 of 12 mm where 5 mm stops it 2.7 mm in). Not for the whole carry: parts resting in the
+        ended 4-14 mm off). 2.5 mm at 480 Hz: at 5 mm, a table's apron slid in under its top with 0.28 mm to spare
+        met the top's edge, and PyBullet kept that contact along a normal 14 degrees off the apron's motion until the
+        apron jammed 18 mm short (table_torsby_1549; at 240 Hz the contact broke in time; 2.5 and 3.5 mm passed, 4
+        mm did not). Not much smaller: at 1-2 mm (240 Hz) the weld drove a held part pushed onto a neighbour most of
+        the way into it (10 of 12 mm where 5 mm stopped it 2.7 mm in). Not for the whole carry: parts resting in the
         kit then tipped off their pedestals now and then (a rail standing on its edge on a procedural chair's
         pedestal, untouched)."""
         self.inserting = True
@@ -895,9 +925,7 @@ def simulate_program(program: Program, parts: Sequence[SimPart], static_bodies: 
                 if settings.record_every_s else None)
     with recorder if recorder is not None else contextlib.nullcontext(), BulletClient() as client:
         pb, cid = client.pb, client.client_id
-        pb.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
-        pb.setTimeStep(1.0 / settings.rate_hz, physicsClientId=cid)
-        pb.setPhysicsEngineParameter(contactBreakingThreshold=settings.contact_breaking_m, physicsClientId=cid)
+        configure_physics(pb, cid, settings)
         cell = _Cell(client, parts, static_bodies, world_from_robot_base, settings)
         grasps = _planned_grasps(cell, program, roles, {p.name: p for p in parts},
                                  lambda index: q[min(np.searchsorted(samples["t"], starts[index]), len(q) - 1)])

@@ -12,7 +12,7 @@ import trimesh
 from cell.bodies import add_convex_body
 from cell.bullet import BulletClient
 from cell.resting import PhysicsRestCheck
-from cell.simulate import SimSettings
+from cell.simulate import SimSettings, configure_physics
 from planning.kitting import _rest_half, chocks_for, pedestal_for, rests_stably, upright_rest_pose
 from planning.payload import mass_properties
 from planning.pose import Pose
@@ -117,8 +117,7 @@ def _sway_of_top_mm(mesh: trimesh.Trimesh, chocks, nudge_rad_s: float = 0.2) -> 
                                    chocks=chocks)
     with BulletClient() as client, tempfile.TemporaryDirectory() as folder:
         cid = client.client_id
-        pb.setGravity(0, 0, -9.81, physicsClientId=cid)
-        pb.setTimeStep(1.0 / settings.rate_hz, physicsClientId=cid)
+        configure_physics(pb, cid, settings)
         add_convex_body(pb, cid, Path(folder), pedestal.mesh(), pedestal.world_from_pedestal,
                         None, settings.friction)
         props = mass_properties(mesh, settings.density_kg_m3)
