@@ -368,3 +368,40 @@ def test_a_part_standing_on_a_narrow_foot_is_not_picked_by_a_hand_coming_on_a_sl
     lying = Grasp(Pose([0.0, 0.0, 0.0], Rotation.from_matrix(on_edge.rotation.T @ world_tcp).as_quat(
         scalar_first=True)), width_m=0.0074, opening_m=0.0174, score=1.0, centroid_score=1.0, contact_score=1.0)
     assert not _tips_under(slat, on_edge)(lying)
+
+
+def test_a_part_that_settles_on_its_cradle_and_rocks_on_the_one_made_for_it_lies_where_it_settled():
+    """A part with no rest pose that physics accepts, laid down on its cradle, settles there tilted; physics then
+    says whether it rests on the cradle made for it as it lies (taken when it does) or, failing that, on the cradle
+    it settled on, moved with it as it is centred (chair_balser_0115's bowed back rail, which rocks on the former
+    and rests on the latter). The physics answers are given here, as ``plan_kitting`` takes them (``rests``,
+    ``settles``): what is judged is the layout's use of them."""
+    from planning.kitting import _footprint_centre, _Layout
+
+    rail = trimesh.creation.box((0.017, 0.43, 0.017))
+    rest_from_part = stable_rest_poses(rail)[0][0]
+    half = np.radians(4.0) / 2  # it settles turned 4 degrees about its length, 1 mm aside
+    tilted = (Pose([0.001, 0.0, 0.0], [np.cos(half), 0.0, np.sin(half), 0.0]) @ Pose.from_matrix(rest_from_part))
+    centre = _footprint_centre(rail, tilted.matrix())
+    assert np.linalg.norm(centre) > 1e-4
+
+    for rocks_on_made in (False, True):
+        layout = _Layout(["rail"], {"rail": rail}, AREA, np.array([0.5, 0.0]), Reach())
+        layout.settles = lambda loose, fixed: [tilted]
+        # the cradle made for it as it lies sits centred under it (x-y 0 in the rest frame); the moved one does not
+        layout.rests = lambda loose, fixed, rocks=rocks_on_made: not (
+            rocks and np.allclose(fixed[0][1].position[:2], 0.0, atol=1e-9))
+        lying = layout._settled("rail", rest_from_part)
+        assert lying is not None
+        np.testing.assert_allclose(lying[:2, 3], tilted.position[:2] - centre, atol=1e-9)  # centred in x-y
+        pedestal = layout.support_cache[("rail", np.round(lying, 9).tobytes())]
+        # made for it as it lies, else the one it settled on (made for it as it was laid down) moved with it
+        expected = layout._pedestal_at_rest("rail", rest_from_part if rocks_on_made else lying)
+        shift = np.array([*centre, 0.0]) if rocks_on_made else np.zeros(3)
+        assert pedestal.size_m == expected.size_m
+        assert len(pedestal.chocks) == len(expected.chocks) > 0
+        for (size, pose), (size_expected, pose_expected) in zip(pedestal.chocks, expected.chocks):
+            assert size == pytest.approx(size_expected)
+            np.testing.assert_allclose(pose.position, pose_expected.position, atol=1e-9)
+        np.testing.assert_allclose(pedestal.world_from_pedestal.position,
+                                   expected.world_from_pedestal.position - shift, atol=1e-9)
