@@ -695,13 +695,10 @@ class _Layout:
         """``rest_from_part`` of the part laid down in this pose on its pedestal (cradled if elongated; else wide,
         when the part does not settle on the usual one) once it has settled there under physics
         (:attr:`settles`), centred over the same pedestal made for it as it lies, which it must rest on too;
-        failing that, on the pedestal it settled on, moved with it as it is centred (a bowed rail, chair_balser_0115's
-        part_05, rocks on a plain pedestal, settles tilted 8 degrees on its cradle, and rocks again on the cradle
-        made for it as it then lies). None when it does not settle, or tips beyond :data:`SETTLE_MAX_TILT_DEG` or
-        its centre of mass sinks beyond :data:`SETTLE_MAX_DROP_M` on the way (it fell over, off or through), or it
-        does not lie low (:data:`SETTLE_MAX_COM_HEIGHT_RATIO`)."""
+        None when it does not settle, or tips beyond :data:`SETTLE_MAX_TILT_DEG` or its centre of mass sinks
+        beyond :data:`SETTLE_MAX_DROP_M` on the way (it fell over, off or through), or it does not lie low
+        (:data:`SETTLE_MAX_COM_HEIGHT_RATIO`)."""
         mesh = self.meshes[name]
-        fallbacks = []  # (lying, the pedestal it settled on, moved with it)
         for wide in (False, True):
             pedestal = self._pedestal_at_rest(name, rest_from_part, wide)
             settled = self.settles([(mesh, Pose.from_matrix(rest_from_part))], self._fixed(pedestal))
@@ -710,18 +707,12 @@ class _Layout:
             lying = settled[0].matrix()
             if not _settled_low(mesh, rest_from_part, lying):
                 continue
-            centre = _footprint_centre(mesh, lying)
-            lying[:2, 3] -= centre  # centred in x-y, as rest poses are
-            fallbacks.append((lying, dataclasses.replace(pedestal, world_from_pedestal=Pose(
-                [-centre[0], -centre[1], 0.0], [1, 0, 0, 0]) @ pedestal.world_from_pedestal)))
-            made = self._pedestal_at_rest(name, lying, wide)
-            if self.rests is None or self.rests([(mesh, Pose.from_matrix(lying))], self._fixed(made)):
-                self.support_cache[(name, np.round(lying, 9).tobytes())] = made
-                return lying
-        for lying, pedestal in fallbacks:
-            if self.rests is None or self.rests([(mesh, Pose.from_matrix(lying))], self._fixed(pedestal)):
-                self.support_cache[(name, np.round(lying, 9).tobytes())] = pedestal
-                return lying
+            lying[:2, 3] -= _footprint_centre(mesh, lying)  # centred in x-y, as rest poses are
+            pedestal = self._pedestal_at_rest(name, lying, wide)
+            if self.rests is not None and not self.rests([(mesh, Pose.from_matrix(lying))], self._fixed(pedestal)):
+                continue
+            self.support_cache[(name, np.round(lying, 9).tobytes())] = pedestal
+            return lying
         return None
 
     def _leaning_grasps(self, name: str, rest_from_part: np.ndarray, grasps: Sequence[Grasp]) -> list[Grasp]:
