@@ -71,6 +71,7 @@ def _fresh_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
 def capture(path: Path, run_args: list[str]) -> int:
     """Run ``python -m cell.run RUN_ARGS``, writing its simulation's inputs to ``path``; returns its exit code."""
     original = simulate.simulate_program
+    path.unlink(missing_ok=True)  # what is there afterwards is this run's
 
     def capturing(program, parts, static_bodies, world_from_robot_base, settings=None, **kwargs):
         settings = settings if settings is not None else simulate.SimSettings()
@@ -114,13 +115,17 @@ def _setting(text: str) -> tuple[str, float | None]:
 
 
 def replay(path: Path, rate_hz: float | None, changes: list[str], json_path: Path | None) -> int:
+    if not path.is_file():
+        raise SystemExit(f"{path}: no such capture (make one with: replay_simulation.py capture {path} -- ...)")
     with open(path, "rb") as handle:
         captured = pickle.load(handle)
-    settings = captured["settings"]
     updates = dict(_setting(text) for text in changes)
     if rate_hz is not None:
         updates["rate_hz"] = rate_hz
-    settings = replace(settings, **updates)
+    try:
+        settings = replace(captured["settings"], **updates)
+    except ValueError as error:
+        raise SystemExit(str(error)) from None
     parts = [replace(p, mesh=_fresh_mesh(p.mesh)) for p in captured["parts"]]
     static_bodies = [replace(b, mesh=_fresh_mesh(b.mesh)) for b in captured["static_bodies"]]
     result = simulate.simulate_program(captured["program"], parts, static_bodies, captured["world_from_robot_base"],
