@@ -14,7 +14,8 @@ in the kitting ring around the robot (first free place along the ring, away from
   Q in the kitting ring.
 
 Each end is solved once by inverse kinematics (``cell.robot.Panda``, seeded) and kept only when both planners'
-collision models call it free; both planners get the same joint-space start and goal.
+collision models call it free in its query's world (the return's start, the carry's goal, also with the part placed
+and the hand empty); both planners get the same joint-space start and goal.
 
 Same geometry. Our checker uses the convex hull of every collision mesh of pybullet_data's ``panda.urdf``; MPlib
 gets a copy of that URDF whose collision meshes are replaced by the same hulls (loaded with ``use_convex=True``),
@@ -263,6 +264,10 @@ class QueryBuilder:
         back = self._pre_grasp(following, parts[following].mesh, layout, return_world)
         if back is None:
             self.skipped.append(f"{name}: no free pre-grasp for {following}")
+            return []
+        if not self._free(carry.goal_q, return_world, None, carry.opening_m):
+            # the pre-place was checked with the part in the hand; placed, it may meet the empty hand there
+            self.skipped.append(f"{name}: the empty hand at {moving}'s pre-place touches it placed")
             return []
         return [carry, Query(f"{name} return {moving} -> {following}", return_world, None, carry.opening_m,
                              carry.goal_q, back[0])]
