@@ -10,6 +10,7 @@ changes. Unknown fields, wrong types and out-of-range values are refused with th
 from __future__ import annotations
 
 import dataclasses
+import json
 import types
 import typing
 from dataclasses import dataclass, field
@@ -128,9 +129,15 @@ class TrainConfig:
     log_every: int = 10  # steps between loss records in the JSON log
     num_workers: int = 0  # DataLoader worker processes
     threads: int = 0  # torch CPU threads per process (0: torch's default)
+    # the stages to run, of those the model has (the baselines have "pose" only); ["pose"] fine-tunes the pose
+    # network of a model started with --init, its segmentation network left as it is
+    stages: tuple[str, ...] = ("segmentation", "pose")
 
     def __post_init__(self):
         _positive(self, "checkpoint_minutes", "log_every")
+        unknown = [name for name in self.stages if name not in ("segmentation", "pose")]
+        if unknown or not self.stages or len(set(self.stages)) != len(self.stages):
+            raise ConfigError(f"train.stages must name segmentation and/or pose once each, got {list(self.stages)}")
         for name in ("val_samples", "num_workers", "threads"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"train.{name} must be >= 0, got {getattr(self, name)}")
@@ -237,3 +244,37 @@ def load_config(path: str | Path) -> Config:
         return config_from_dict(data)
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
+
+
+def _toml_value(value, name: str) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if value != value or value in (float("inf"), float("-inf")):
+            raise ConfigError(f"{name} = {value} cannot be written to TOML")
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)  # a JSON string is a valid TOML basic string
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v, f"{name}[{i}]") for i, v in enumerate(value)) + "]"
+    raise ConfigError(f"{name}: cannot write {type(value).__name__} to TOML")  # pragma: no cover
+
+
+def config_to_toml(config: Config, header: str = "") -> str:
+    """The TOML text of ``config`` (``load_config`` reads it back to an equal config); ``header``: comment
+    lines put first."""
+    lines = [f"# {line}".rstrip() for line in header.splitlines()]
+
+    def table(name: str, data: dict) -> None:
+        scalars = {k: v for k, v in data.items() if not isinstance(v, dict)}
+        lines.extend(["", f"[{name}]"] if lines else [f"[{name}]"])
+        lines.extend(f"{key} = {_toml_value(value, f'{name}.{key}')}" for key, value in scalars.items())
+        for key, value in data.items():
+            if isinstance(value, dict):
+                table(f"{name}.{key}", value)
+
+    for name, data in config.to_dict().items():
+        table(name, data)
+    return "\n".join(lines) + "\n"

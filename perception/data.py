@@ -26,8 +26,19 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 from perception.dataset import list_objects
 
 OBJECT_KEYS = ("points_norm", "instance_onehot", "equivalence_class")
+OPTIONAL_OBJECT_KEYS = ("points_scale",)  # slim datasets only
 VIEW_KEYS = ("images", "part_labels", "visible_pixels", "pose_quat_wxyz", "pose_translation_norm")
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32)
+
+
+def part_points(arrays: dict) -> np.ndarray:
+    """The part clouds (n, m, 3) as float32. A slim dataset (:mod:`perception.dataset.slim`) stores them as int8
+    with a per-part scale ``points_scale`` (n,): point = int8 value / 127 x scale."""
+    points = np.asarray(arrays["points_norm"])
+    if points.dtype == np.int8:
+        scale = np.asarray(arrays["points_scale"], dtype=np.float32)[:, None, None] / 127.0
+        return points.astype(np.float32) * scale
+    return points.astype(np.float32, copy=False)
 
 
 def view_sample(arrays: dict, view: int, name: str = "") -> dict:
@@ -35,7 +46,7 @@ def view_sample(arrays: dict, view: int, name: str = "") -> dict:
     return {
         "image": np.asarray(arrays["images"][view]),
         "part_labels": np.asarray(arrays["part_labels"][view]),
-        "points": np.asarray(arrays["points_norm"], dtype=np.float32),
+        "points": part_points(arrays),
         "instance_onehot": np.asarray(arrays["instance_onehot"], dtype=np.float32),
         "classes": np.asarray(arrays["equivalence_class"], dtype=np.int64),
         "visible_pixels": np.asarray(arrays["visible_pixels"][view], dtype=np.int64),
@@ -82,7 +93,7 @@ class ViewDataset(Dataset):
     def __getitem__(self, i: int) -> dict:
         path, view = self.index[i]
         with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in OBJECT_KEYS}
+            arrays = {key: data[key] for key in OBJECT_KEYS + OPTIONAL_OBJECT_KEYS if key in data.files}
             arrays.update({key: data[key][view: view + 1] for key in VIEW_KEYS})
         sample = view_sample(arrays, 0)
         sample["name"] = f"{path.stem}/view{view}"

@@ -8,12 +8,15 @@ their pose), right-handed.
 
 from __future__ import annotations
 
-import fpsample
+from typing import TYPE_CHECKING
+
 import numpy as np
-import trimesh
 from scipy.spatial import cKDTree
 
 from planning.pose import Pose
+
+if TYPE_CHECKING:  # training on a built dataset reads no mesh: a GPU host needs neither trimesh nor fpsample
+    import trimesh
 
 POINTS_PER_PART = 1000
 _DENSE_SAMPLES = 8000
@@ -54,6 +57,9 @@ def canonical_frame(mesh: trimesh.Trimesh) -> Pose:
 def sample_surface_fps(mesh: trimesh.Trimesh, count: int = POINTS_PER_PART, seed: int = 0) -> np.ndarray:
     """(count, 3) float64 points on the surface, spread by farthest point sampling over a dense uniform sample.
     Deterministic for a given seed."""
+    import fpsample
+    import trimesh
+
     dense, _ = trimesh.sample.sample_surface(mesh, max(_DENSE_SAMPLES, 4 * count), seed=seed)
     indices = fpsample.bucket_fps_kdline_sampling(np.ascontiguousarray(dense, dtype=np.float32), count, h=5,
                                                   start_idx=0)

@@ -75,3 +75,39 @@ def test_cli_refuses_other_settings_in_same_folder(built):
     assert result.returncode == 2
     assert "views: 2 there, 3 asked" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_slim_copy_is_what_training_reads(built, tmp_path):
+    """A slim copy keeps the train and val objects below --count, each cloud's first points as int8 with a
+    per-part scale (read back within 1/254 of the part's largest coordinate), and every other array training
+    reads unchanged; training runs on it."""
+    from perception.data import ViewDataset, object_files
+    from perception.train.cli import main as train_main
+
+    slim = tmp_path / "slim"
+    command = [sys.executable, "-m", "perception.dataset", "slim", str(built), "--points", "64", "--count", "9",
+               "--out", str(slim)]
+    result = subprocess.run(command, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert len(list_objects(slim, "train")) == 8 and len(list_objects(slim, "val")) == 1
+    assert not (slim / "test").exists()
+    assert json.loads((slim / "dataset.json").read_text())["slim"]["points"] == 64
+    stored = load_object(list_objects(slim, "train")[0])
+    assert stored["points_norm"].dtype == np.int8 and stored["points_norm"].shape[1] == 64
+    full, cut = ViewDataset(object_files([built], "train")), ViewDataset(object_files([slim], "train"))
+    assert len(full) == len(cut) == 16
+    for i in (0, 7, 15):
+        a, b = full[i], cut[i]
+        assert a["name"] == b["name"] and b["points"].dtype == np.float32
+        scale = np.abs(a["points"][:, :64]).max(axis=(1, 2))
+        assert np.all(np.abs(a["points"][:, :64] - b["points"]).max(axis=(1, 2)) <= scale / 254 + 1e-7)
+        for key in ("image", "part_labels", "instance_onehot", "classes", "visible_pixels", "quat", "trans"):
+            assert np.array_equal(a[key], b[key]), key
+    # the same folder with other arguments is refused; a bad source names itself
+    again = subprocess.run([*command[:-4], "--points", "32", "--out", str(slim)], capture_output=True, text=True)
+    assert again.returncode == 2 and "other arguments" in again.stderr and "Traceback" not in again.stderr
+    missing = subprocess.run([sys.executable, "-m", "perception.dataset", "slim", str(tmp_path / "none"),
+                              "--points", "64", "--out", str(tmp_path / "x")], capture_output=True, text=True)
+    assert missing.returncode == 2 and str(tmp_path / "none") in missing.stderr
+    assert train_main(["--config", "tiny", "--data", str(slim), "--out", str(tmp_path / "run"), "--no-progress",
+                       "--max-steps", "1"]) == 0

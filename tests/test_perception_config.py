@@ -2,15 +2,27 @@
 
 import pytest
 
-from perception.config import CONFIG_DIR, Config, ConfigError, config_from_dict, load_config
+from perception.config import CONFIG_DIR, Config, ConfigError, config_from_dict, config_to_toml, load_config
 from perception.model import build_model, count_parameters
 
 
-@pytest.mark.parametrize("name", ["paper", "compact", "tiny"])
-def test_bundled_configs_load_and_round_trip(name):
+@pytest.mark.parametrize("name", sorted(p.stem for p in CONFIG_DIR.glob("*.toml")))
+def test_bundled_configs_load_and_round_trip(name, tmp_path):
     config = load_config(CONFIG_DIR / f"{name}.toml")
     assert load_config(name) == config
     assert config_from_dict(config.to_dict()) == config
+    written = tmp_path / "written.toml"
+    written.write_text(config_to_toml(config, header="what ran\nand how"))
+    assert written.read_text().startswith("# what ran\n# and how\n\n[model]\n")
+    assert load_config(written) == config
+
+
+def test_gpu_configs_keep_the_compact_network():
+    """The GPU-trained weights are bundled in place of the CPU-trained ones: the same network."""
+    compact = load_config("compact")
+    for name in ("compact_gpu", "compact_gpu_pose"):
+        assert load_config(name).model == compact.model and load_config(name).loss == compact.loss
+    assert load_config("compact_gpu_pose").train.stages == ("pose",)
 
 
 def test_paper_sizes():
@@ -40,6 +52,8 @@ def test_defaults():
     ("[train.segmentation]\nbatch_size = 1\n", "train.segmentation.batch_size must be >= 2"),
     ("[train]\nfreeze_segmentation = 1\n", "train.freeze_segmentation must be true or false"),
     ("[modle]\n", "unknown field modle"),
+    ("[train]\nstages = ['pose', 'pose']\n", "train.stages must name segmentation and/or pose once each"),
+    ("[train]\nstages = ['masks']\n", "train.stages must name segmentation and/or pose once each"),
     ("[model\n", "line 1"),
 ])
 def test_mistakes_name_the_field(tmp_path, text, message):

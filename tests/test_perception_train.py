@@ -152,3 +152,59 @@ def test_torchrun_two_processes(data, tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     log = json.loads((out / LOG).read_text())
     assert log["world_size"] == 2 and log["global_step"] == 2 and (out / MODEL).exists()
+
+
+def test_pose_stage_alone_fine_tunes_the_pose_network(data, uninterrupted, tmp_path, capsys):
+    """train.stages = ["pose"] trains the pose network of given weights and leaves the segmentation network
+    as it is; without --init there is no segmentation network to keep, and the run is refused."""
+    config_file = tmp_path / "pose_only.toml"
+    config_file.write_text((CONFIG_DIR / "tiny.toml").read_text().replace("[train]\n", '[train]\nstages = ["pose"]\n'))
+    out = tmp_path / "pose"
+    assert main(["--config", str(config_file), "--data", str(data), "--out", str(out), "--no-progress",
+                 "--init", str(uninterrupted / MODEL)]) == 0
+    assert list(json.loads((out / LOG).read_text())["stages"]) == ["pose"]
+    start, after = weights(uninterrupted / MODEL), weights(out / MODEL)
+    assert all(torch.equal(start[k], after[k]) for k in start if k.startswith("segmentation."))
+    assert any(not torch.equal(start[k], after[k]) for k in start if k.startswith("pose."))
+    capsys.readouterr()
+    assert main(["--config", str(config_file), "--data", str(data), "--out", str(tmp_path / "none"),
+                 "--no-progress"]) == 2
+    assert "--init" in capsys.readouterr().err
+
+
+def test_budget_plan_fills_the_time_at_the_probed_speeds():
+    from perception.train.budget import plan_steps, planned_config, seconds_per_step
+
+    log = {"stages": {"pose": {"train": [{"step": 10, "seconds": 3.0}, {"step": 20, "seconds": 4.0},
+                                         {"step": 40, "seconds": 6.0}]}}}
+    assert seconds_per_step(log, "pose") == pytest.approx(0.1)
+    plan = plan_steps({"ours": {"segmentation": 0.2, "pose": 0.1}, "b_gru": {"pose": 0.05}}, 100.0, 0.5, 0.1)
+    assert plan == {"ours": {"segmentation": 225, "pose": 450}, "b_gru": {"pose": 1800}}
+    config = planned_config(load_config("compact_gpu"), plan["ours"], validations=9)
+    assert (config.train.segmentation.steps, config.train.segmentation.val_every) == (225, 25)
+    assert (config.train.pose.steps, config.train.pose.val_every) == (450, 50)
+    assert config.train.segmentation.warmup_steps == 22  # at most a tenth of the stage
+
+
+def test_budget_trains_side_by_side_and_exports_a_stopped_run(data, tmp_path):
+    """A short budget end to end (probe, plan, two models side by side), then a run stopped mid-stage whose
+    checkpoint is exported to a weights file that evaluation loads."""
+    from perception.train.budget import export_from_checkpoint, run_budget
+
+    out = tmp_path / "budget"
+    record = run_budget(load_config("tiny"), ["ours", "b_global"], [str(data)], out, minutes=0.6, probe_steps=8,
+                        segmentation_share=0.5, validations=2, validation_share=0.1, margin_s=5.0, min_train_s=5.0)
+    assert set(record["plan"]["steps"]) == {"ours", "b_global"}
+    assert set(record["plan"]["steps"]["ours"]) == {"segmentation", "pose"}
+    for kind in ("ours", "b_global"):
+        assert record["runs"][kind]["model_file"] and load_model(out / kind / MODEL)[2] == kind
+        assert load_config(out / kind / "config.toml").train.pose.steps == record["plan"]["steps"][kind]["pose"]
+    assert json.loads((out / "budget.json").read_text())["plan"] == record["plan"]
+
+    stopped = tmp_path / "stopped"
+    assert main(["--config", "tiny", "--data", str(data), "--out", str(stopped), "--no-progress",
+                 "--stop-after", "5"]) == 0  # inside the pose stage, after one validation of it
+    exported = export_from_checkpoint(stopped / CHECKPOINT, stopped / MODEL)
+    assert exported["stage"] == "pose" and exported["best_weights"]
+    model, _, kind = load_model(stopped / MODEL)
+    assert kind == "ours"

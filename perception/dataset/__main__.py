@@ -1,4 +1,5 @@
-"""``python -m perception.dataset build --category chair --level 3 --count N --views K --seed S --out DIR``"""
+"""``python -m perception.dataset build --category chair --level 3 --count N --views K --seed S --out DIR``
+``python -m perception.dataset slim DIR --points 256 --out SLIM_DIR`` (a training-only copy to ship elsewhere)"""
 
 from __future__ import annotations
 
@@ -21,7 +22,17 @@ def main(argv: list[str] | None = None) -> int:
     b.add_argument("--out", type=Path, required=True)
     b.add_argument("--workers", type=int, default=1)
     b.add_argument("--renderer", choices=["tiny", "egl", "auto"], default="tiny")
+    s = commands.add_parser("slim", help="a training-only copy: the arrays training reads, each part cloud cut to "
+                            "its first --points points, quantised to int8 (to ship a dataset to a GPU machine)")
+    s.add_argument("source", type=Path, help="a folder made by build")
+    s.add_argument("--points", type=int, required=True,
+                   help="points kept per part: at least the config's model.encoder_points and loss.points")
+    s.add_argument("--count", type=int, help="only the objects of index below COUNT: the objects that build "
+                   "--count COUNT makes")
+    s.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
+    if args.command == "slim":
+        return _slim(args)
     for name in ("count", "views", "workers"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be at least 1, got {getattr(args, name)}")
@@ -33,6 +44,18 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(f"{stats['objects_built']} objects ({stats['samples_built']} samples) in {stats['seconds']:.1f} s: "
           f"{stats['samples_per_second']:.1f} samples/s -> {args.out}")
+    return 0
+
+
+def _slim(args: argparse.Namespace) -> int:
+    from perception.dataset.slim import slim_dataset
+
+    try:
+        stats = slim_dataset(args.source, args.out, args.points, args.count)
+    except (ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"{stats['objects']} objects: {stats['source_mb']:.1f} MB -> {stats['slim_mb']:.1f} MB in {args.out}")
     return 0
 
 

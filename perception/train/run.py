@@ -162,6 +162,9 @@ def _run_stages(config, out, kind, max_steps, stop_after, progress, dist, stop_f
         if dist.main:
             print(f"resuming {checkpoint_path} at stage {state.stage}, step {state.step} "
                   f"({state.global_step} steps done)", flush=True)
+    elif init is None and kind == "ours" and "segmentation" not in config.train.stages:
+        raise ConfigError("train.stages leaves out the segmentation stage: give --init weights for the "
+                          "segmentation network to start from")
     elif init is not None:
         load_initial_weights(model, init, kind)
         model.to(dist.device)

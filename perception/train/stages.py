@@ -109,6 +109,7 @@ class PoseStage:
 
 
 def stages_for(model: nn.Module, config: Config) -> list:
-    if isinstance(model, AssemblyNet):
-        return [SegmentationStage(config), PoseStage(config)]
-    return [PoseStage(config)]
+    """The stages ``model`` trains, in order: those it has (the baselines have no segmentation) of
+    ``train.stages``."""
+    own = [SegmentationStage(config), PoseStage(config)] if isinstance(model, AssemblyNet) else [PoseStage(config)]
+    return [stage for stage in own if stage.name in config.train.stages]
