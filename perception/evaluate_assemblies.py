@@ -39,7 +39,7 @@ from planning.assembly import ASSEMBLY_FILE, Assembly, read_assembly
 from planning.collision import ConvexPart
 from planning.contact import FLOOR, contact_graph
 from planning.pose import Pose
-from planning.repair import repair_poses
+from planning.repair import RepairSettings, repair_poses
 
 
 def assembly_folders(root: str | Path) -> list[Path]:
@@ -154,7 +154,7 @@ def _stats(values: np.ndarray) -> dict:
 
 def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: PreparedParts,
                   convex: list[ConvexPart] | None, prepare_s: tuple[float, float], max_parts: int,
-                  name: str) -> ViewOutcome:
+                  name: str, repair_settings: RepairSettings = RepairSettings()) -> ViewOutcome:
     """Predict one rendered view and score it (``convex``: the parts' convex pieces for connectivity and repair;
     ``None`` skips both). ``prepare_s``: (wall, CPU) seconds :func:`prepare_parts` took, counted as inference."""
     bounds = assembly.bounds()
@@ -173,7 +173,7 @@ def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: 
     if convex is None:
         return outcome
     truth_poses = [p.assembly_from_part for p in assembly.parts]
-    repaired, report = repair_poses(convex, placement.assembly_from_part)
+    repaired, report = repair_poses(convex, placement.assembly_from_part, repair_settings)
     outcome.penetration_m = {"before": report.deepest_penetration_before_m, "after": report.deepest_penetration_after_m}
     camera_from_repaired = [placement.camera_from_assembly @ p for p in repaired]
     quat_r, trans_r = network_frame(camera_from_repaired, parts, placement.centre_camera_m)
@@ -186,7 +186,8 @@ def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: 
 
 
 def evaluate_assemblies(model: nn.Module, root: str | Path, views: int = 1, seed: int = 0, repair: bool = True,
-                        max_parts: int = 20, limit: int = 0, progress: bool = False) -> dict:
+                        max_parts: int = 20, limit: int = 0, progress: bool = False,
+                        repair_settings: RepairSettings = RepairSettings()) -> dict:
     """Figures over every assembly folder under ``root`` (see the module docstring); ``limit``: the first N
     folders only (0: all). Adds ``objects`` and ``per_object`` (name, parts, PA, up error, inference time)."""
     folders = assembly_folders(root)
@@ -206,7 +207,7 @@ def evaluate_assemblies(model: nn.Module, root: str | Path, views: int = 1, seed
             for k in range(views):
                 view = renderer.render(sample_camera(rng, assembly.bounds()), Appearance.sample(rng, len(meshes)))
                 accumulator.outcomes.append(evaluate_view(model, view, assembly, parts, convex, prepare_s, max_parts,
-                                                          f"{folder.name}/view{k}"))
+                                                          f"{folder.name}/view{k}", repair_settings))
                 bar.update()
     bar.close()
     figures = accumulator.summary()

@@ -1,15 +1,8 @@
 """The bundled weights and loading a checkpoint for inference (never downloads anything).
 
-``perception/weights/compact.pt`` is the compact model trained on chairs, tables and cabinets (levels 3 and
-mixed); it is package data and is reproduced by::
-
-    python -m perception.dataset build --category chair --level 3 --count 600 --views 2 --seed 0 --out data/chair_l3
-    ... (table, cabinet; levels 3 and mixed: see the README)
-    python -m perception.train --config compact --data data/chair_l3 data/table_l3 data/cabinet_l3 \
-        data/chair_mixed data/table_mixed data/cabinet_mixed --out runs/compact
-    python -m perception.train --config compact_finetune --init runs/compact/model.pt --data data/chair_l3 \
-        data/table_l3 data/cabinet_l3 data/chair_mixed data/table_mixed data/cabinet_mixed --out runs/compact_ft
-    cp runs/compact_ft/model.pt perception/weights/compact.pt
+``perception/weights/compact.pt`` is the compact model (``perception/configs/compact.toml``'s network) trained on
+chairs, tables and cabinets (levels 3 and mixed) on a GPU; it is package data. The commands that reproduce it
+(dataset, slim copy, the two GPU runs) are in ``perception/weights/README.md``.
 """
 
 from __future__ import annotations
@@ -25,10 +18,9 @@ from perception.config import Config
 
 WEIGHTS_DIR = Path(__file__).parent / "weights"
 BUNDLED_WEIGHTS = WEIGHTS_DIR / "compact.pt"
-TRAIN_COMMAND = ("python -m perception.train --config compact --data data/chair_l3 data/table_l3 data/cabinet_l3 "
-                 "data/chair_mixed data/table_mixed data/cabinet_mixed --out runs/compact, then the same with "
-                 "--config compact_finetune --init runs/compact/model.pt --out runs/compact_ft, and copy "
-                 "runs/compact_ft/model.pt to that path or pass it as the checkpoint (see the README)")
+TRAIN_COMMAND = ("python -m perception.train.budget --config compact_gpu ... then --config compact_gpu_pose "
+                 "(the commands are in perception/weights/README.md), and copy the weights to that path or pass "
+                 "them as the checkpoint")
 
 
 class MissingWeightsError(FileNotFoundError):

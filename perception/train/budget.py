@@ -30,7 +30,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from perception.config import Config, ConfigError, config_to_toml, load_config
+from perception.config import Config, ConfigError, config_from_dict, config_to_toml, load_config
 from perception.model import MODELS, build_model
 from perception.train.checkpoint import CHECKPOINT, LOG, MODEL, export_model, load_checkpoint
 
@@ -80,8 +80,6 @@ def export_from_checkpoint(path: Path, out: Path) -> dict:
     there are some) to the model file ``out``; returns what was exported."""
     saved = load_checkpoint(path)
     kind = saved["kind"]
-    from perception.config import config_from_dict
-
     config = config_from_dict(saved["config"])
     model = build_model(config.model, kind)
     model.load_state_dict(saved["model"])
@@ -104,8 +102,8 @@ def _launch(kind: str, config_path: Path, data: list[str], out: Path, init: str 
     if init is not None:
         command += ["--init", init]
     out.mkdir(parents=True, exist_ok=True)
-    log = open(out / "stdout.txt", "ab")
-    return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+    with open(out / "stdout.txt", "ab") as log:  # the child keeps its own copy of the file
+        return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
 
 
 def _wait(procs: dict[str, subprocess.Popen], deadline: float, grace: float = 120.0) -> dict[str, dict]:
@@ -186,7 +184,7 @@ def run_budget(config: Config, kinds: list[str], data: list[str], out: Path, min
         run_dir.mkdir(parents=True, exist_ok=True)
         path = run_dir / "config.toml"
         path.write_text(config_to_toml(planned, f"written by perception.train.budget ({minutes} minutes, "
-                                       f"{len(kinds)} models side by side); repeat with\n"
+                                       f"{len(kinds)} model{'s side by side' if len(kinds) > 1 else ''}); repeat with\n"
                                        f"python -m perception.train --config {path} --model {kind} --out DIR"
                                        + (f" --init {init[kind]}" if kind in init else "")))
         procs[kind] = _launch(kind, path, data, run_dir, init.get(kind))
@@ -241,8 +239,9 @@ def main(argv: list[str] | None = None) -> int:
     for kind, run in record["runs"].items():
         print(f"{kind}: exit {run['returncode']}, {run['seconds']} s"
               f"{', finished' if run.get('finished') else ''}"
-              f"{', stopped at the deadline' if run['stopped_at_deadline'] else ''}"
-              f"{', weights exported from its checkpoint' if 'exported_from_checkpoint' in run else ''}")
+              f"{', stopped at the deadline' if run['stopped_at_deadline'] and not run.get('finished') else ''}"
+              + (f", weights exported from its checkpoint in the {run['exported_from_checkpoint']['stage']} stage"
+                 if "exported_from_checkpoint" in run else ""))
     return 0 if all(run["model_file"] for run in record["runs"].values()) else 1
 
 
