@@ -41,6 +41,8 @@ from planning.contact import FLOOR, contact_graph
 from planning.pose import Pose
 from planning.repair import RepairSettings, repair_poses
 
+DEFAULT_REPAIR = RepairSettings()  # what cell.run applies to predicted poses
+
 
 def assembly_folders(root: str | Path) -> list[Path]:
     """The assembly folders under ``root`` (its subfolders holding an ``assembly.json``, sorted by name), or
@@ -154,7 +156,7 @@ def _stats(values: np.ndarray) -> dict:
 
 def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: PreparedParts,
                   convex: list[ConvexPart] | None, prepare_s: tuple[float, float], max_parts: int,
-                  name: str, repair_settings: RepairSettings = RepairSettings()) -> ViewOutcome:
+                  name: str, repair_settings: RepairSettings = DEFAULT_REPAIR) -> ViewOutcome:
     """Predict one rendered view and score it (``convex``: the parts' convex pieces for connectivity and repair;
     ``None`` skips both). ``prepare_s``: (wall, CPU) seconds :func:`prepare_parts` took, counted as inference."""
     bounds = assembly.bounds()
@@ -187,7 +189,7 @@ def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: 
 
 def evaluate_assemblies(model: nn.Module, root: str | Path, views: int = 1, seed: int = 0, repair: bool = True,
                         max_parts: int = 20, limit: int = 0, progress: bool = False,
-                        repair_settings: RepairSettings = RepairSettings()) -> dict:
+                        repair_settings: RepairSettings = DEFAULT_REPAIR) -> dict:
     """Figures over every assembly folder under ``root`` (see the module docstring); ``limit``: the first N
     folders only (0: all). Adds ``objects`` and ``per_object`` (name, parts, PA, up error, inference time)."""
     folders = assembly_folders(root)

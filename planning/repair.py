@@ -10,7 +10,10 @@ failure). The repair, all in the assembly frame (metres, +z up, floor at z = 0):
    pieces, :mod:`planning.collision`): a penetrating pair is pushed apart, a pair with a gap below
    ``snap_distance_m`` is pulled together; the floor is fixed, parts near it are set on it. Each correction is
    shared between the two parts.
-3. **Bound**: a part's total displacement is clamped to ``max_translation_m`` and its rotation to
+3. **Connect**: every piece of furniture is one connected whole, so a part that still touches no other part
+   (:func:`planning.contact.contact_graph`, the floor not counted) is moved, alone and by translation, into
+   contact with the nearest part within ``connect_distance_m``; then the contact rounds run again.
+4. **Bound**: a part's total displacement is clamped to ``max_translation_m`` and its rotation to
    ``max_rotation_deg``; the report says how far each part moved.
 """
 
@@ -21,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from planning.collision import ConvexPart, overlapping_pairs, signed_distance
+from planning.contact import FLOOR, contact_graph
 from planning.pose import Pose, matrix_to_quat, quat_angle_rad
 
 
@@ -29,9 +33,10 @@ class RepairSettings:
     align_tolerance_deg: float = 8.0
     snap_distance_m: float = 0.01
     penetration_tolerance_m: float = 0.0005
-    max_translation_m: float = 0.03
+    max_translation_m: float = 0.05
     max_rotation_deg: float = 10.0
     iterations: int = 40
+    connect_distance_m: float = 0.05  # an isolated part joins its nearest part within this (0: never)
 
 
 @dataclass(frozen=True)
@@ -78,17 +83,9 @@ def _deepest_penetration(parts: list[ConvexPart], poses: list[Pose]) -> float:
     return max((depth for _, _, depth in overlapping_pairs(parts, poses)), default=0.0)
 
 
-def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSettings = RepairSettings(),
-                 floor_z_m: float = 0.0) -> tuple[list[Pose], RepairReport]:
-    """Repaired ``assembly_from_part`` poses (same order as ``parts``) and the report."""
-    original = list(poses)
-    before = _deepest_penetration(parts, original)
-    current = []
-    for part, pose in zip(parts, original):
-        rotation = snap_rotation_to_axes(pose.rotation, min(settings.align_tolerance_deg, settings.max_rotation_deg))
-        # rotate about the part's centre so that aligning does not move it
-        centre_world = pose.apply(_centre(part))
-        current.append(Pose.from_rotation(rotation, centre_world - rotation @ _centre(part)))
+def _contact_rounds(parts: list[ConvexPart], original: list[Pose], current: list[Pose], settings: RepairSettings,
+                    floor_z_m: float) -> list[Pose]:
+    """Step 2: pairwise corrections along contact normals until nothing moves (at most ``iterations`` rounds)."""
     n = len(parts)
     for _ in range(settings.iterations):
         shifts = np.zeros((n, 3))
@@ -115,6 +112,57 @@ def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSet
         moved = np.where(counts[:, None] > 0, shifts / np.maximum(counts, 1)[:, None], 0.0)
         current = [_clamped(p, o, Pose(c.position + m, c.quat_wxyz), settings)
                    for p, o, c, m in zip(parts, original, current, moved)]
+    return current
+
+
+def _connect_isolated(parts: list[ConvexPart], original: list[Pose], current: list[Pose],
+                      settings: RepairSettings) -> list[Pose]:
+    """Step 3: each part touching no other part, smallest first, moved by translation onto its nearest part when
+    that is within ``connect_distance_m`` (and the move within the bound). Returns ``current`` itself when nothing
+    moved."""
+    if len(parts) < 2:
+        return current
+    graph = contact_graph(parts, current)
+    isolated = [i for i, part in enumerate(parts)
+                if not any(other != FLOOR for other in graph.neighbors(part.name))]
+    # smallest first: of two parts floating apart, the smaller moves onto the larger
+    isolated.sort(key=lambda i: float(np.linalg.norm(np.ptp(parts[i].vertices, axis=0))))
+    joined = list(current)
+    for i in isolated:
+        nearest = None
+        for j in range(len(parts)):
+            if j == i:
+                continue
+            result = signed_distance(parts[i], joined[i], parts[j], joined[j], settings.connect_distance_m)
+            if result.measured and result.normal_ab is not None and 0 < result.distance_m <= \
+                    settings.connect_distance_m and (nearest is None or result.distance_m < nearest.distance_m):
+                nearest = result
+        if nearest is None:
+            continue
+        # normal_ab points from part i to its nearest part: close the gap, i alone
+        candidate = Pose(joined[i].position + nearest.distance_m * nearest.normal_ab, joined[i].quat_wxyz)
+        clamped = _clamped(parts[i], original[i], candidate, settings)
+        if clamped is candidate:  # a move cut short by the bound would leave the part isolated anyway
+            joined[i] = candidate
+    return joined if any(a is not b for a, b in zip(joined, current)) else current
+
+
+def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSettings = RepairSettings(),
+                 floor_z_m: float = 0.0) -> tuple[list[Pose], RepairReport]:
+    """Repaired ``assembly_from_part`` poses (same order as ``parts``) and the report."""
+    original = list(poses)
+    before = _deepest_penetration(parts, original)
+    current = []
+    for part, pose in zip(parts, original):
+        rotation = snap_rotation_to_axes(pose.rotation, min(settings.align_tolerance_deg, settings.max_rotation_deg))
+        # rotate about the part's centre so that aligning does not move it
+        centre_world = pose.apply(_centre(part))
+        current.append(Pose.from_rotation(rotation, centre_world - rotation @ _centre(part)))
+    current = _contact_rounds(parts, original, current, settings, floor_z_m)
+    if settings.connect_distance_m > 0:
+        joined = _connect_isolated(parts, original, current, settings)
+        if joined is not current:
+            current = _contact_rounds(parts, original, joined, settings, floor_z_m)
     after = _deepest_penetration(parts, current)
     report = RepairReport(
         translation_m={p.name: float(np.linalg.norm(c.apply(_centre(p)) - o.apply(_centre(p))))

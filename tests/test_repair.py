@@ -64,3 +64,28 @@ def test_snap_rotation():
     np.testing.assert_allclose(snap_rotation_to_axes(turned, 8.0), [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
     tilted = Rotation.from_rotvec([0, 0.3, 0]).as_matrix()  # 17 degrees: left alone
     np.testing.assert_array_equal(snap_rotation_to_axes(tilted, 8.0), tilted)
+
+
+@pytest.mark.parametrize("gap_m, joins", [(0.02, True), (RepairSettings().connect_distance_m + 0.02, False)])
+def test_an_isolated_part_joins_its_nearest_part(gap_m, joins):
+    """A part touching nothing, farther than the pairwise snap but within connect_distance_m of another part, is
+    moved alone onto it; beyond that distance, or with the step off, it stays where it was predicted."""
+    import trimesh
+
+    board = ConvexPart.from_mesh("board", trimesh.creation.box((0.30, 0.20, 0.02)))
+    post = ConvexPart.from_mesh("post", trimesh.creation.box((0.03, 0.03, 0.20)))
+    identity = np.array([1.0, 0.0, 0.0, 0.0])
+    # in the air: the post under the board, a gap between them
+    poses = [Pose(np.array([0.0, 0.0, 0.50]), identity), Pose(np.array([0.0, 0.0, 0.39 - gap_m]), identity)]
+    for settings in (RepairSettings(snap_distance_m=0.01), RepairSettings(snap_distance_m=0.01, connect_distance_m=0)):
+        parts = [board, post]
+        repaired, report = repair_poses(parts, poses, settings)
+        graph = contact_graph(parts, repaired)
+        connected = graph.has_edge("board", "post")
+        assert connected == (joins and settings.connect_distance_m > 0)
+        if connected:
+            # the post alone moved up by the gap, within the bound; the board stayed
+            assert report.translation_m["board"] < 1e-9
+            assert report.translation_m["post"] == pytest.approx(gap_m, abs=1e-4)
+        else:
+            assert max(report.translation_m.values()) < 1e-9
