@@ -170,6 +170,12 @@ def test_pose_stage_alone_fine_tunes_the_pose_network(data, uninterrupted, tmp_p
     assert main(["--config", str(config_file), "--data", str(data), "--out", str(tmp_path / "none"),
                  "--no-progress"]) == 2
     assert "--init" in capsys.readouterr().err
+    # a baseline has no segmentation stage to run alone
+    seg_only = tmp_path / "seg_only.toml"
+    seg_only.write_text(config_file.read_text().replace('stages = ["pose"]', 'stages = ["segmentation"]'))
+    assert main(["--config", str(seg_only), "--data", str(data), "--out", str(tmp_path / "gru"), "--no-progress",
+                 "--model", "b_gru"]) == 2
+    assert "has none of the stages" in capsys.readouterr().err
 
 
 def test_budget_plan_fills_the_time_at_the_probed_speeds():

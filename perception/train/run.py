@@ -203,6 +203,8 @@ def _run_stages(config, out, kind, max_steps, stop_after, progress, dist, stop_f
         write_log(current)
 
     stages = stages_for(model, config)
+    if not stages:
+        raise ConfigError(f"model {kind!r} has none of the stages train.stages names ({list(config.train.stages)})")
     for index in range(state.stage, len(stages)):
         stage = stages[index]
         steps = stage.schedule.steps if max_steps is None else min(stage.schedule.steps, max_steps)
