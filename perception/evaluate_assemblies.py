@@ -30,6 +30,7 @@ from torch import nn
 from tqdm import tqdm
 
 from cell.render import Appearance, AssemblyRenderer, Rendering, sample_camera
+from perception.elevation import image_elevation_deg
 from perception.metrics import AssemblyResult, MetricSummary, evaluate_assembly
 from perception.normalize import camera_from_canonical_norm
 from perception.placement import Placement, place_parts
@@ -164,7 +165,9 @@ def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: 
     gt_quat, gt_trans = truth_targets(view, parts, centre_camera_m)
     start, start_cpu = time.perf_counter(), time.process_time()
     quat, trans = run_network(model, view.rgb, parts, max_parts)
-    placement: Placement = place_parts(quat, trans, parts.normalized, parts.meshes)
+    elevation = image_elevation_deg(view.rgb)  # as perception.predict reads up (None without its weights)
+    placement: Placement = place_parts(quat, trans, parts.normalized, parts.meshes,
+                                       image_elevation_deg=elevation)
     inference_s = prepare_s[0] + time.perf_counter() - start
     inference_cpu_s = prepare_s[1] + time.process_time() - start_cpu
     points, classes = parts.normalized.points_norm, parts.classes

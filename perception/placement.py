@@ -77,14 +77,15 @@ def surface_directions_camera(meshes: list[trimesh.Trimesh], camera_from_part: l
 
 def place_parts(quat_wxyz: np.ndarray, trans_norm: np.ndarray, parts: NormalizedParts,
                 meshes: list[trimesh.Trimesh], up_settings: UpSettings = DEFAULT_UP,
-                fov_deg: float = FIELD_OF_VIEW_DEG) -> Placement:
+                fov_deg: float = FIELD_OF_VIEW_DEG, image_elevation_deg: float | None = None) -> Placement:
     """Poses in metres in the camera and assembly frames from the network's output (see the module docstring).
-    meshes: the N part meshes, metres, own frames (those ``parts`` was normalised from)."""
+    meshes: the N part meshes, metres, own frames (those ``parts`` was normalised from). image_elevation_deg: the
+    camera elevation read from the picture (:mod:`perception.elevation`), which then sets up."""
     quat_wxyz = np.asarray(quat_wxyz, dtype=np.float64)
     centre_from_part = centre_from_part_metres(quat_wxyz, trans_norm, parts)
     vertices = _placed_vertices(meshes, centre_from_part)  # object-centred, camera axes, metres
     directions, weights = surface_directions_camera(meshes, centre_from_part, parts.extents_norm)
-    up = estimate_up(directions, weights, vertices, up_settings)
+    up = estimate_up(directions, weights, vertices, up_settings, image_elevation_deg)
     x_axis = dominant_yaw_axis(directions, weights, up.up_camera)
     centred_from_assembly = upright_frame(vertices, up.up_camera, x_axis)
     local = centred_from_assembly.inverse().apply(vertices)

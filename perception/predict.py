@@ -27,6 +27,7 @@ import trimesh
 
 from cell.render import FIELD_OF_VIEW_DEG, IMAGE_SIZE
 from perception.data import collate
+from perception.elevation import image_elevation_deg
 from perception.equivalence import MAX_PART_INSTANCES, equivalence_classes, instance_onehot
 from perception.normalize import NormalizedParts, normalize_parts
 from perception.placement import Placement, place_parts
@@ -142,14 +143,16 @@ def run_network(model: torch.nn.Module, image: np.ndarray, parts: PreparedParts,
 
 
 def predict(image, part_meshes, checkpoint: str | Path | None = None, *, threads: int | None = INFERENCE_THREADS,
-            up_settings: UpSettings = DEFAULT_UP, fov_deg: float = FIELD_OF_VIEW_DEG) -> Prediction:
+            up_settings: UpSettings = DEFAULT_UP, fov_deg: float = FIELD_OF_VIEW_DEG,
+            image_elevation: bool = True) -> Prediction:
     """Every part's pose from one picture (see the module docstring).
 
     checkpoint: a ``model.pt`` of ``python -m perception.train`` (``None``: the bundled weights).
     threads: torch CPU threads during the call (``None``: torch's setting; 1 is fastest for one picture on
     shared cores, see :data:`perception.weights.INFERENCE_THREADS`). fov_deg: the picture's vertical field of view.
-    Raises :class:`PredictionError` on a bad image or bad meshes, :class:`MissingPredictionWeights` when the
-    weights file is missing."""
+    image_elevation: up from the camera elevation read from the picture (:mod:`perception.elevation`, the bundled
+    weights) rather than from the predicted parts alone. Raises :class:`PredictionError` on a bad image or bad
+    meshes, :class:`MissingPredictionWeights` when the weights file is missing."""
     start = time.perf_counter()
     image = check_image(image)
     names, meshes = _named_meshes(part_meshes)
@@ -162,7 +165,8 @@ def predict(image, part_meshes, checkpoint: str | Path | None = None, *, threads
     parts = prepare_parts(meshes)
     with inference_threads(threads):
         quat, trans = run_network(model, image, parts, config.model.max_parts)
-    placement: Placement = place_parts(quat, trans, parts.normalized, meshes, up_settings, fov_deg)
+        elevation = image_elevation_deg(image) if image_elevation else None
+    placement: Placement = place_parts(quat, trans, parts.normalized, meshes, up_settings, fov_deg, elevation)
     return Prediction(
         names=names,
         camera_from_part=dict(zip(names, placement.camera_from_part)),

@@ -55,7 +55,8 @@ DEFAULT_UP = UpSettings()
 @dataclass(frozen=True)
 class UpEstimate:
     """up_camera: (3,) unit vector, camera frame. elevation_deg: the camera elevation it implies.
-    method: "surfaces", "stable" (a stable face within the snap angle) or "prior" (no structure: mid elevation).
+    method: "image" (the elevation read from the picture), "surfaces", "stable" (a stable face within the snap
+    angle) or "prior" (no structure: mid elevation).
     surfaces_elevation_deg: the elevation the surfaces alone gave."""
 
     up_camera: np.ndarray
@@ -149,12 +150,18 @@ def stable_up(points_camera: np.ndarray, near: np.ndarray, snap_deg: float) -> n
 
 
 def estimate_up(directions: np.ndarray, weights: np.ndarray, points_camera: np.ndarray,
-                settings: UpSettings = DEFAULT_UP) -> UpEstimate:
+                settings: UpSettings = DEFAULT_UP, image_elevation_deg: float | None = None) -> UpEstimate:
     """The up direction of a predicted assembly in the camera frame (see the module docstring).
 
     directions: (M, 3) unit surface directions of the placed parts, camera frame; weights: (M,) their weights.
-    points_camera: (K, 3) points of the placed parts (any unit), for the stable resting faces."""
+    points_camera: (K, 3) points of the placed parts (any unit), for the stable resting faces.
+    image_elevation_deg: the elevation read from the picture (:mod:`perception.elevation`); given, it sets up
+    (method "image"): it does not depend on the predicted parts, whose rotation errors mislead the surfaces."""
     elevation, score = manhattan_up(directions, weights, settings)
+    if image_elevation_deg is not None:
+        lo, hi = settings.elevation_range_deg
+        image = float(np.clip(image_elevation_deg, lo - SEARCH_MARGIN_DEG, hi + SEARCH_MARGIN_DEG))
+        return UpEstimate(up_from_elevation(image), image, "image", elevation)
     if score <= 1e-3 * max(float(np.sum(weights)), 1e-12):  # no surface agrees with any admissible up direction
         mid = 0.5 * sum(settings.elevation_range_deg)
         return UpEstimate(up_from_elevation(mid), mid, "prior", mid)

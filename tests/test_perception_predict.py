@@ -127,3 +127,20 @@ def test_bundled_weights_predict_an_upright_object(scene):
     prediction = predict(view.rgb, meshes_of(assembly))
     assert prediction.kind == "ours" and prediction.checkpoint == weights.BUNDLED_WEIGHTS.resolve()
     assert angle_deg(prediction.up.up_camera, view.camera_from_assembly.rotation[:, 2]) < 30.0
+
+
+def test_bundled_elevation_head_reads_the_camera_from_the_picture(scene):
+    """The bundled elevation head, on a table never trained on seen from four training cameras: the elevation
+    within a few degrees; predict takes up from it, or from the parts when told not to."""
+    from perception.elevation import image_elevation_deg
+
+    assembly, view = scene
+    errors = []
+    for seed in range(4):
+        other = render_assembly(assembly, np.random.default_rng([7, seed]))
+        up = other.camera_from_assembly.rotation[:, 2]
+        true_deg = float(np.degrees(np.arcsin(-up[2])))
+        errors.append(abs(image_elevation_deg(other.rgb) - true_deg))
+    assert np.median(errors) < 5.0, errors
+    assert predict(view.rgb, meshes_of(assembly)).up.method == "image"
+    assert predict(view.rgb, meshes_of(assembly), image_elevation=False).up.method != "image"

@@ -116,3 +116,15 @@ def test_upright_frame_puts_the_lowest_point_on_the_floor_at_the_footprint_centr
     assert local[:, 2].min() == pytest.approx(0.0, abs=1e-12)
     assert np.allclose(0.5 * (local.min(0) + local.max(0))[:2], 0.0, atol=1e-12)
     assert np.allclose(local - local[0], assembly_points - assembly_points[0], atol=1e-12)  # no rotation left
+
+
+def test_the_elevation_read_from_the_picture_sets_up():
+    """Given the picture's elevation, up is that no-roll direction whatever the parts say; the surfaces' own
+    estimate is still reported."""
+    camera = camera_rotation(200.0, 22.0)
+    box = trimesh.creation.box([0.4, 0.3, 0.5])
+    directions, weights = placed_directions([(box, camera)])
+    estimate = estimate_up(directions, weights, box.vertices @ camera.T, image_elevation_deg=31.0)
+    assert estimate.method == "image" and estimate.elevation_deg == pytest.approx(31.0)
+    assert angle_deg(estimate.up_camera, up_from_elevation(31.0)) < 1e-9
+    assert estimate.surfaces_elevation_deg == pytest.approx(22.0, abs=0.1)
