@@ -48,6 +48,7 @@ def test_training_writes_checkpoint_log_and_weights(uninterrupted):
     assert 0 <= log["stages"]["pose"]["val"][-1]["val_part_accuracy"] <= 1
     saved = torch.load(uninterrupted / MODEL, map_location="cpu", weights_only=False)
     assert saved["kind"] == "ours" and saved["config"]["model"]["image_size"] == 64
+    assert saved["config"]["data"]["paths"] == []  # a bundled weights file names no training data location
 
 
 def test_resume_gives_the_uninterrupted_weights(data, uninterrupted, tmp_path):
@@ -214,3 +215,4 @@ def test_budget_trains_side_by_side_and_exports_a_stopped_run(data, tmp_path):
     assert exported["stage"] == "pose" and exported["best_weights"]
     model, _, kind = load_model(stopped / MODEL)
     assert kind == "ours"
+    assert torch.load(stopped / MODEL, map_location="cpu", weights_only=False)["config"]["data"]["paths"] == []

@@ -91,8 +91,7 @@ def export_from_checkpoint(path: Path, out: Path) -> dict:
         trainable = model.segmentation if stage == "segmentation" else (
             model.pose if kind == "ours" and config.train.freeze_segmentation else model)
         trainable.load_state_dict(best)
-    exported = replace(config, data=replace(config.data, paths=()))
-    export_model(model, kind, exported.to_dict(), out)
+    export_model(model, kind, config.to_dict(), out)
     return {"stage": stage, "step": state["step"], "best_step": state.get("best_step"), "best_weights": bool(best)}
 
 

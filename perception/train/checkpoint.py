@@ -79,8 +79,10 @@ def load_checkpoint(path: Path) -> dict:
 def export_model(model: torch.nn.Module, kind: str, config: dict, path: Path, dtype: torch.dtype = torch.float32,
                  extra: dict | None = None) -> int:
     """Write the weights-only model file; returns its size in bytes. Floating tensors are stored as ``dtype``
-    (contiguous), other buffers unchanged."""
+    (contiguous), other buffers unchanged. The file carries no data location (it may be bundled and shipped):
+    the config's ``data.paths`` are left out."""
     state = {k: (v.to(dtype) if v.is_floating_point() else v).contiguous() for k, v in cpu_state_dict(model).items()}
+    config = {**config, "data": {**config.get("data", {}), "paths": []}}
     payload = {"format": FORMAT, "kind": kind, "config": config, "model": state, **(extra or {})}
     atomic_torch_save(payload, path)
     return Path(path).stat().st_size

@@ -14,7 +14,6 @@ import signal
 import sys
 import threading
 from contextlib import contextmanager
-from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -219,9 +218,7 @@ def _run_stages(config, out, kind, max_steps, stop_after, progress, dist, stop_f
 
     state.log["global_step"] = state.global_step
     if dist.main:
-        # the weights file carries no data location (it may be bundled and shipped)
-        exported = replace(config, data=replace(config.data, paths=()))
-        size = export_model(model, kind, exported.to_dict(), out / MODEL)
+        size = export_model(model, kind, config.to_dict(), out / MODEL)
         state.log.update({"finished": True, "model_file": MODEL, "model_file_mb": round(size / 2**20, 3)})
         save(state)
     return state.log
