@@ -6,9 +6,11 @@ connectivity before and after repair, the up-axis error, CPU inference time and 
 Test sets: ``--count`` procedural objects per category (chair, table, cabinet) and level (3, mixed), drawn as
 ``python -m perception.synth --seed 1000`` draws them (``default_rng([1000, i])``; training used seed 0), written
 once under ``OUT/sets/`` and reused. Each object is rendered ``--views`` times on the fly (``default_rng([1,
-i])``; :mod:`perception.evaluate_assemblies`) and scored as ``python -m perception.evaluate --assemblies`` scores
-it. Methods: ``--method KIND=CHECKPOINT`` (repeatable); by default Ours is the bundled weights and each baseline is
-``runs/<kind>/model.pt`` when it exists. A missing baseline is listed with the command that trains it:
+i])``; :mod:`perception.evaluate_assemblies`), its parts in a random order (``--keep-part-order``: the order of
+its ``assembly.json``, which for procedural objects is the generator's fixed order), and scored as
+``python -m perception.evaluate --assemblies`` scores it. Methods: ``--method KIND=CHECKPOINT`` (repeatable); by
+default Ours is the bundled weights and each baseline is ``runs/<kind>/model.pt`` when it exists. A missing
+baseline is listed with the command that trains it:
 
     python -m perception.train --config compact --model b_gru --data data/chair_l3 data/table_l3 data/cabinet_l3 \
         data/chair_mixed data/table_mixed data/cabinet_mixed --out runs/b_gru    # likewise b_insonehot, b_global
@@ -96,12 +98,13 @@ def methods_from(args) -> tuple[dict[str, Path], list[str]]:
 
 
 def evaluate_cached(out: Path, kind: str, checkpoint: Path, label: str, folder: Path, views: int,
-                    limit: int) -> dict:
+                    limit: int, shuffle_parts: bool = True) -> dict:
     path = out / "results" / f"{kind}__{label.replace(' ', '_')}.json"
     if path.exists():
         cached = json.loads(path.read_text())
-        if (cached.get("checkpoint_mtime"), cached.get("views"), cached.get("limit")) == (
-                checkpoint.stat().st_mtime, views, limit):
+        # results from before the parts were shuffled carry no shuffle_parts: they kept the folders' order
+        if (cached.get("checkpoint_mtime"), cached.get("views"), cached.get("limit"),
+                cached.get("shuffle_parts", False)) == (checkpoint.stat().st_mtime, views, limit, shuffle_parts):
             return cached
     model, config, loaded_kind, _ = load_for_inference(checkpoint)
     if loaded_kind != kind:
@@ -109,9 +112,10 @@ def evaluate_cached(out: Path, kind: str, checkpoint: Path, label: str, folder: 
     start = time.perf_counter()
     with inference_threads(1):
         figures = evaluate_assemblies(model, folder, views=views, seed=RENDER_SEED, repair=kind == "ours",
-                                      max_parts=config.model.max_parts, limit=limit, progress=True)
+                                      max_parts=config.model.max_parts, limit=limit, progress=True,
+                                      shuffle_parts=shuffle_parts)
     figures.update(checkpoint=str(checkpoint), checkpoint_mtime=checkpoint.stat().st_mtime, views=views, limit=limit,
-                   wall_s=time.perf_counter() - start, load=os.getloadavg()[0])
+                   shuffle_parts=shuffle_parts, wall_s=time.perf_counter() - start, load=os.getloadavg()[0])
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(figures, indent=1) + "\n")
     print(f"{METHOD_NAMES[kind]} on {label}: PA {figures['part_accuracy']:.3f} ({figures['samples']} views, "
@@ -242,13 +246,16 @@ def main() -> None:
     parser.add_argument("--furniture", type=Path, help="a folder of real assembly folders (e.g. ../shared/furniture)")
     parser.add_argument("--method", action="append", default=[], help="KIND=CHECKPOINT (repeatable)")
     parser.add_argument("--limit", type=int, default=0, help="evaluate only the first N objects of each set")
+    parser.add_argument("--keep-part-order", action="store_true", help="give the networks each object's parts in "
+                        "the order of its assembly.json (the generators' fixed order), not in a random order")
     parser.add_argument("--frames", type=int, default=20, help="objects per set for the way-back and up-noise "
                         "study (no network; 0: skip)")
     args = parser.parse_args()
     methods, missing = methods_from(args)
     sets = build_sets(args.out, args.count)
     lines = [f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores. {args.count} objects "
-             f"per set, {args.views} view(s) each.", ""]
+             f"per set, {args.views} view(s) each; each object's parts "
+             f"{'in the order of its assembly.json' if args.keep_part_order else 'in a random order'}.", ""]
     if args.frames:
         groups = {"procedural": [p for folder in sets.values() for p in sorted(folder.iterdir())[:args.frames]]}
         if args.furniture:
@@ -260,7 +267,8 @@ def main() -> None:
         sets["real furniture"] = args.furniture
     results: dict[str, dict] = {}
     for kind, checkpoint in methods.items():
-        results[kind] = {label: evaluate_cached(args.out, kind, checkpoint, label, folder, args.views, args.limit)
+        results[kind] = {label: evaluate_cached(args.out, kind, checkpoint, label, folder, args.views, args.limit,
+                                                not args.keep_part_order)
                          for label, folder in sets.items()}
     level3 = [f"{c} 3" for c in CATEGORIES]
     mixed = [f"{c} mixed" for c in CATEGORIES]

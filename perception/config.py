@@ -132,6 +132,9 @@ class TrainConfig:
     # the stages to run, of those the model has (the baselines have "pose" only); ["pose"] fine-tunes the pose
     # network of a model started with --init, its segmentation network left as it is
     stages: tuple[str, ...] = ("segmentation", "pose")
+    # present every training and validation sample's parts in a random order (perception.data.permute_parts):
+    # the procedural generators list parts in a fixed order (seat, back, legs, ...) that users' parts lack
+    shuffle_parts: bool = True
 
     def __post_init__(self):
         _positive(self, "checkpoint_minutes", "log_every")

@@ -24,6 +24,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 
 from perception.dataset import list_objects
+from perception.equivalence import instance_onehot
 
 OBJECT_KEYS = ("points_norm", "instance_onehot", "equivalence_class")
 OPTIONAL_OBJECT_KEYS = ("points_scale",)  # slim datasets only
@@ -56,6 +57,40 @@ def view_sample(arrays: dict, view: int, name: str = "") -> dict:
     }
 
 
+def permute_parts(sample: dict, order: np.ndarray) -> dict:
+    """``sample`` with its parts in the order ``order`` (new part k is old part ``order[k]``): every per-part
+    array is reindexed, the pixel labels renamed, the equivalence classes renumbered in order of first appearance
+    and the instance one-hots recomputed, exactly as if the object had listed its parts in that order.
+
+    The parts of a procedural object come in the order its generator builds them (seat, back, legs, ...), a
+    regularity that users' parts do not have; a network that reads the order (B-GRU) learns it. Training and
+    evaluation therefore present the parts in a random order (:class:`ViewDataset`, ``shuffle_parts``)."""
+    order = np.asarray(order, dtype=np.int64)
+    n = len(sample["points"])
+    if sorted(order.tolist()) != list(range(n)):
+        raise ValueError(f"{sample.get('name', 'sample')}: {order.tolist()} is not an order of its {n} parts")
+    out = dict(sample)
+    for key in ("points", "visible_pixels", "quat", "trans"):
+        if key in sample:
+            out[key] = np.asarray(sample[key])[order]
+    _, first, inverse = np.unique(np.asarray(sample["classes"])[order], return_index=True, return_inverse=True)
+    rank = np.argsort(np.argsort(first))  # class ids numbered by first appearance in the new order
+    out["classes"] = rank[inverse.reshape(-1)].astype(np.int64)
+    out["instance_onehot"] = instance_onehot(out["classes"], np.asarray(sample["instance_onehot"]).shape[1])
+    if "part_labels" in sample:
+        labels = np.asarray(sample["part_labels"])
+        new_index = np.empty(n, dtype=np.int64)
+        new_index[order] = np.arange(n)
+        out["part_labels"] = np.where(labels >= 0, new_index[np.maximum(labels, 0)], labels).astype(labels.dtype)
+    return out
+
+
+def shuffle_order(n_parts: int, seed: int, index: int, epoch: int = 0) -> np.ndarray:
+    """The random part order of sample ``index`` in ``epoch`` (a permutation of ``range(n_parts)``), from
+    ``numpy.random.default_rng([seed, epoch, index])``: the same on every run and every worker."""
+    return np.random.default_rng([seed, epoch, index]).permutation(n_parts)
+
+
 def object_files(roots: Sequence[str | Path], split: str, categories: Sequence[str] = ()) -> list[Path]:
     """Object files of one split from several dataset folders, optionally only some categories (the file name's
     first ``_`` field). A folder without split subfolders counts as the split itself."""
@@ -73,9 +108,13 @@ def object_files(roots: Sequence[str | Path], split: str, categories: Sequence[s
 
 class ViewDataset(Dataset):
     """Every view of every object file: index i -> (file, view). Files are read lazily, one sample at a time
-    (only the arrays a sample needs are decompressed). ``limit``: at most this many views, evenly spread."""
+    (only the arrays a sample needs are decompressed). ``limit``: at most this many views, evenly spread.
+    ``shuffle_parts``: present each sample's parts in a random order (:func:`permute_parts`) drawn by
+    :func:`shuffle_order` from ``seed``, the sample's index and the epoch (:meth:`set_epoch`); ``False``: the
+    order of the file."""
 
-    def __init__(self, files: Sequence[str | Path], limit: int = 0):
+    def __init__(self, files: Sequence[str | Path], limit: int = 0, shuffle_parts: bool = False, seed: int = 0):
+        self.shuffle_parts, self.seed, self.epoch = shuffle_parts, seed, 0
         self.index: list[tuple[Path, int]] = []
         for path in files:
             with np.load(path, allow_pickle=False) as data:
@@ -90,6 +129,10 @@ class ViewDataset(Dataset):
     def __len__(self) -> int:
         return len(self.index)
 
+    def set_epoch(self, epoch: int) -> None:
+        """Draw the part orders of epoch ``epoch`` (the loaders' workers copy the dataset when they start)."""
+        self.epoch = epoch
+
     def __getitem__(self, i: int) -> dict:
         path, view = self.index[i]
         with np.load(path, allow_pickle=False) as data:
@@ -97,6 +140,8 @@ class ViewDataset(Dataset):
             arrays.update({key: data[key][view: view + 1] for key in VIEW_KEYS})
         sample = view_sample(arrays, 0)
         sample["name"] = f"{path.stem}/view{view}"
+        if self.shuffle_parts:
+            sample = permute_parts(sample, shuffle_order(len(sample["points"]), self.seed, i, self.epoch))
         return sample
 
 
@@ -169,6 +214,8 @@ def epoch_loader(dataset: Dataset, batch_size: int, epoch: int, seed: int, rank:
     sampler = DistributedSampler(dataset, num_replicas=world, rank=rank, shuffle=shuffle, seed=seed,
                                  drop_last=drop_last)
     sampler.set_epoch(epoch)
+    if hasattr(dataset, "set_epoch"):
+        dataset.set_epoch(epoch)  # before the workers start and copy it
     # a generator of its own: the loader's worker seeds come from it, not from the global torch RNG
     generator = torch.Generator().manual_seed(seed * 100003 + epoch)
     return DataLoader(dataset, batch_size=batch_size, sampler=SkipSampler(sampler, skip_batches * batch_size),

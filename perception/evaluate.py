@@ -88,9 +88,10 @@ def evaluate_samples(model: nn.Module, samples: Iterable[dict], batch_size: int 
 
 def evaluate_folder(model: nn.Module, roots: Iterable[str | Path], split: str = "test", limit: int = 0,
                     batch_size: int = 8, device: str | torch.device = "cpu", progress: bool = False,
-                    max_parts: int = 20) -> dict:
-    """Metrics over the views of a dataset folder's split (a folder without split subfolders: its files)."""
-    dataset = ViewDataset(object_files(list(roots), split), limit)
+                    max_parts: int = 20, shuffle_parts: bool = True, seed: int = 0) -> dict:
+    """Metrics over the views of a dataset folder's split (a folder without split subfolders: its files), each
+    view's parts in a random order drawn from ``seed`` (``shuffle_parts``; see :class:`ViewDataset`)."""
+    dataset = ViewDataset(object_files(list(roots), split), limit, shuffle_parts, seed)
     if len(dataset) == 0:
         raise FileNotFoundError(f"no {split} samples in {', '.join(map(str, roots))}")
     samples = (dataset[i] for i in range(len(dataset)))
@@ -147,8 +148,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--model", choices=sorted(METHOD_NAMES), help="refuse a checkpoint of another network")
     parser.add_argument("--split", default="test", choices=["train", "val", "test"], help="with --data")
     parser.add_argument("--views", type=int, default=1, help="with --assemblies: renderings per object")
-    parser.add_argument("--seed", type=int, default=0, help="with --assemblies: object i renders from "
-                        "numpy.random.default_rng([seed, i])")
+    parser.add_argument("--seed", type=int, default=0, help="object i renders from numpy.random.default_rng([seed, "
+                        "i]) (--assemblies); the parts' random order is drawn from it too")
+    parser.add_argument("--keep-part-order", action="store_true", help="give the network the parts in the order "
+                        "of the files, not in a random order (procedural objects list them in a fixed order)")
     parser.add_argument("--no-repair", action="store_true", help="with --assemblies: skip connectivity and repair")
     parser.add_argument("--json", help="write the figures to this JSON file")
     parser.add_argument("--limit", type=int, default=0, help="evaluate the first N samples (--data) or assembly "
@@ -176,11 +179,13 @@ def main(argv: list[str] | None = None) -> int:
 
             with inference_threads(threads):
                 summary = evaluate_assemblies(model, args.assemblies, args.views, args.seed, not args.no_repair,
-                                              config.model.max_parts, args.limit, not args.no_progress)
+                                              config.model.max_parts, args.limit, not args.no_progress,
+                                              shuffle_parts=not args.keep_part_order)
         else:
             with inference_threads(threads):
                 summary = evaluate_folder(model, args.data, args.split, args.limit, args.batch_size, device,
-                                          not args.no_progress, config.model.max_parts)
+                                          not args.no_progress, config.model.max_parts, not args.keep_part_order,
+                                          args.seed)
     except (ConfigError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -193,8 +198,9 @@ def main(argv: list[str] | None = None) -> int:
         print(format_extras(summary))
     if args.json:
         record = {"model": kind, "checkpoint": Path(checkpoint).name, "image_size": config.model.image_size,
-                  **({"assemblies": Path(args.assemblies).name, "views": args.views, "seed": args.seed}
-                     if args.assemblies else {"split": args.split}), **summary}
+                  **({"assemblies": Path(args.assemblies).name, "views": args.views} if args.assemblies
+                     else {"split": args.split}), "seed": args.seed, "shuffle_parts": not args.keep_part_order,
+                  **summary}
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(record, indent=1) + "\n")
     return 0

@@ -3,7 +3,8 @@
 Every assembly folder under ``DIR`` (procedural ones from ``python -m perception.synth`` or real furniture) is
 rendered ``views`` times with the project's renderer (parts of more than 40,000 faces decimated for the picture
 only: PyBullet's vertex limit) and :func:`cell.render.sample_camera` (assembly ``i`` in
-sorted order draws from ``numpy.random.default_rng([seed, i])``), run through the model exactly as
+sorted order draws from ``numpy.random.default_rng([seed, i])``; its parts come in a random order, as a
+user's do: :func:`shuffled_parts`), run through the model exactly as
 :func:`perception.predict.predict` runs it, and scored against the truth:
 
 - the paper's figures (Part Accuracy, Shape Chamfer, PA of visible and invisible parts), in the network's frame
@@ -190,11 +191,20 @@ def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: 
     return outcome
 
 
+def shuffled_parts(assembly: Assembly, seed: int, index: int) -> Assembly:
+    """``assembly`` with its parts in a random order from ``numpy.random.default_rng([seed, index, 1])``
+    (assembly ``index`` in sorted order): the network meets them unordered, as a user's parts come."""
+    order = np.random.default_rng([seed, index, 1]).permutation(len(assembly.parts))
+    return Assembly(assembly.name, [assembly.parts[k] for k in order], assembly.metadata)
+
+
 def evaluate_assemblies(model: nn.Module, root: str | Path, views: int = 1, seed: int = 0, repair: bool = True,
                         max_parts: int = 20, limit: int = 0, progress: bool = False,
-                        repair_settings: RepairSettings = DEFAULT_REPAIR) -> dict:
+                        repair_settings: RepairSettings = DEFAULT_REPAIR, shuffle_parts: bool = True) -> dict:
     """Figures over every assembly folder under ``root`` (see the module docstring); ``limit``: the first N
-    folders only (0: all). Adds ``objects`` and ``per_object`` (name, parts, PA, up error, inference time)."""
+    folders only (0: all). ``shuffle_parts``: the parts in a random order (:func:`shuffled_parts`), not the
+    order of the folder's ``assembly.json`` (procedural generators list them in a fixed order). Adds ``objects``
+    and ``per_object`` (name, parts, PA, up error, inference time)."""
     folders = assembly_folders(root)
     if limit:
         folders = folders[:limit]
@@ -202,6 +212,8 @@ def evaluate_assemblies(model: nn.Module, root: str | Path, views: int = 1, seed
     bar = tqdm(total=len(folders) * views, unit="view", disable=not progress, desc="evaluate")
     for index, folder in enumerate(folders):
         assembly = read_assembly(folder)
+        if shuffle_parts:
+            assembly = shuffled_parts(assembly, seed, index)
         meshes = [p.mesh for p in assembly.parts]
         start, start_cpu = time.perf_counter(), time.process_time()
         parts = prepare_parts(meshes)

@@ -111,3 +111,54 @@ def test_slim_copy_is_what_training_reads(built, tmp_path):
     assert missing.returncode == 2 and str(tmp_path / "none") in missing.stderr
     assert train_main(["--config", "tiny", "--data", str(slim), "--out", str(tmp_path / "run"), "--no-progress",
                        "--max-steps", "1"]) == 0
+
+
+def test_parts_in_a_random_order_describe_the_same_object(built):
+    """permute_parts moves every per-part array and the pixel labels with the part, renumbers the equivalence
+    classes by first appearance and recounts the instance one-hots; the inverse order gives the sample back."""
+    from perception.data import ViewDataset, object_files, permute_parts, shuffle_order
+
+    original = ViewDataset(object_files([built], "train"))[0]
+    n = len(original["points"])
+    order = shuffle_order(n, seed=3, index=0)
+    assert sorted(order) == list(range(n)) and not np.array_equal(order, np.arange(n))
+    moved = permute_parts(original, order)
+    for k, old in enumerate(order):
+        assert np.array_equal(moved["points"][k], original["points"][old])
+        assert np.array_equal(moved["quat"][k], original["quat"][old])
+        assert np.array_equal(moved["trans"][k], original["trans"][old])
+        assert moved["visible_pixels"][k] == original["visible_pixels"][old]
+        assert np.array_equal(moved["part_labels"] == k, original["part_labels"] == old)
+    assert np.array_equal(moved["part_labels"] == -1, original["part_labels"] == -1)
+    # same grouping of parts, ids in order of first appearance, one-hot = index among its class
+    same = moved["classes"][:, None] == moved["classes"][None, :]
+    assert np.array_equal(same, (original["classes"][:, None] == original["classes"][None, :])[np.ix_(order, order)])
+    _, first = np.unique(moved["classes"], return_index=True)
+    assert np.all(np.diff(first) > 0)
+    for k in range(n):
+        assert moved["instance_onehot"][k].argmax() == int(np.sum(moved["classes"][:k] == moved["classes"][k]))
+    back = permute_parts(moved, np.argsort(order))
+    for key in ("points", "quat", "trans", "visible_pixels", "part_labels", "classes", "instance_onehot"):
+        assert np.array_equal(back[key], original[key]), key
+    with pytest.raises(ValueError, match="is not an order of its"):
+        permute_parts(original, np.zeros(n, dtype=int))
+
+
+def test_dataset_draws_a_part_order_per_sample_and_epoch(built):
+    """Shuffled: the same order for the same sample and epoch (every run, every worker), another in another
+    epoch; unshuffled: the files' order."""
+    from perception.data import ViewDataset, object_files
+
+    files = object_files([built], "train")
+    plain = ViewDataset(files)
+    shuffled, again = ViewDataset(files, shuffle_parts=True, seed=1), ViewDataset(files, shuffle_parts=True, seed=1)
+    assert np.array_equal(plain[2]["points"], load_object(files[1])["points_norm"])  # 2 views per object
+
+    def order_of(sample, reference):
+        return [next(j for j in range(len(reference)) if np.array_equal(p, reference[j])) for p in sample]
+
+    reference = plain[2]["points"]
+    first = order_of(shuffled[2]["points"], reference)
+    assert first == order_of(again[2]["points"], reference) and first != list(range(len(reference)))
+    shuffled.set_epoch(1)
+    assert order_of(shuffled[2]["points"], reference) != first

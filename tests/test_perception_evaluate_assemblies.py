@@ -65,3 +65,23 @@ def test_bad_arguments_exit_2_naming_the_value(checkpoint, folder, tmp_path, cap
     assert "missing.pt not found" in capsys.readouterr().err
     with pytest.raises(FileNotFoundError, match="no assembly folders"):
         assembly_folders(tmp_path)
+
+
+def test_parts_reach_the_network_in_a_random_order(checkpoint, folder):
+    """Each object's parts are reordered by its own seeded draw (names and poses kept), and --keep-part-order
+    gives the network the order of assembly.json instead."""
+    from perception.evaluate_assemblies import shuffled_parts
+    from planning.assembly import read_assembly
+
+    assembly = read_assembly(assembly_folders(folder)[0])
+    orders = [shuffled_parts(assembly, seed, 0).part_names for seed in (0, 1, 2)]
+    assert orders[0] == shuffled_parts(assembly, 0, 0).part_names
+    assert all(sorted(order) == sorted(assembly.part_names) for order in orders)
+    assert any(order != assembly.part_names for order in orders)
+    moved = shuffled_parts(assembly, 0, 0)
+    for part in moved.parts:
+        assert part.assembly_from_part is assembly.part(part.name).assembly_from_part
+    model, _, _, _ = load_for_inference(checkpoint)
+    kept = evaluate_assemblies(model, folder, views=1, seed=7, repair=False, shuffle_parts=False)
+    shuffled = evaluate_assemblies(model, folder, views=1, seed=7, repair=False)
+    assert kept["parts"] == shuffled["parts"] and kept["samples"] == shuffled["samples"] == 2

@@ -170,8 +170,10 @@ def _run_stages(config, out, kind, max_steps, stop_after, progress, dist, stop_f
         if dist.main:
             print(f"starting from the weights of {init}", flush=True)
 
-    train_set = ViewDataset(object_files(config.data.paths, "train", config.data.categories))
-    val_set = ViewDataset(object_files(config.data.paths, "val", config.data.categories), config.train.val_samples)
+    shuffle, seed = config.train.shuffle_parts, config.train.seed
+    train_set = ViewDataset(object_files(config.data.paths, "train", config.data.categories), 0, shuffle, seed)
+    val_set = ViewDataset(object_files(config.data.paths, "val", config.data.categories), config.train.val_samples,
+                          shuffle, seed)
     max_parts = config.model.max_parts
 
     if dist.main and len(val_set) == 0:

@@ -1,0 +1,133 @@
+"""Repair settings compared on a tuning set: connectivity and Part Accuracy after :func:`planning.repair.repair_poses`
+for several :class:`planning.repair.RepairSettings`, on Ours' predictions of procedural objects that neither
+training (seed 0) nor the held-out test sets (seed 1000) use.
+
+    python benchmarks/repair_tuning.py --count 25 --setting connect_distance_m=0.08 \
+        --setting connect_distance_m=0.08,max_translation_m=0.08
+
+Objects: ``--count`` per category (chair, table, cabinet) and level (3, mixed), drawn as
+``python -m perception.synth --seed 2000`` draws them, parts in a random order, one view each rendered and
+predicted as ``perception.evaluate --assemblies`` does (bundled weights, up from the picture). The network runs
+once per object; every setting then repairs the same predicted poses. The first row is the default settings; the
+parts still touching nothing after the default repair are listed by their distance to the nearest part, which
+is what ``connect_distance_m`` and ``max_translation_m`` decide. Prints a Markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+# Run as a script, this file's folder comes first on sys.path and its name would hide the perception package.
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+
+from cell.render import Appearance, AssemblyRenderer, sample_camera  # noqa: E402
+from perception.elevation import image_elevation_deg  # noqa: E402
+from perception.evaluate_assemblies import connectivity, network_frame, shuffled_parts, truth_targets  # noqa: E402
+from perception.metrics import evaluate_assembly  # noqa: E402
+from perception.placement import place_parts  # noqa: E402
+from perception.predict import prepare_parts, run_network  # noqa: E402
+from perception.synth import generate  # noqa: E402
+from perception.weights import BUNDLED_WEIGHTS, inference_threads, load_for_inference  # noqa: E402
+from planning.collision import ConvexPart, signed_distance  # noqa: E402
+from planning.contact import FLOOR, contact_graph  # noqa: E402
+from planning.repair import RepairSettings, repair_poses  # noqa: E402
+
+CATEGORIES = ("chair", "table", "cabinet")
+LEVELS = ("3", "mixed")
+TUNING_SEED = 2000  # geometry: neither training (seed 0) nor the test sets (seed 1000)
+
+
+def parse_setting(text: str) -> RepairSettings:
+    """``key=value,key=value`` over the defaults of :class:`RepairSettings`."""
+    fields = {f.name: f.type for f in dataclasses.fields(RepairSettings)}
+    values = {}
+    for item in filter(None, text.split(",")):
+        key, _, value = item.partition("=")
+        if key not in fields or not value:
+            raise SystemExit(f"--setting: {item!r} is not KEY=VALUE with KEY in {sorted(fields)}")
+        values[key] = int(value) if fields[key] in ("int", int) else float(value)
+    return RepairSettings(**values)
+
+
+def predicted_objects(count: int, model, max_parts: int):
+    """Yield (label, convex parts, predicted assembly_from_part, scoring context) per object."""
+    for category in CATEGORIES:
+        for level in LEVELS:
+            for i in range(count):
+                assembly = generate(category, level, np.random.default_rng([TUNING_SEED, i]), f"{category}_{i}")
+                assembly = shuffled_parts(assembly, TUNING_SEED, i)
+                parts = prepare_parts([p.mesh for p in assembly.parts])
+                rng = np.random.default_rng([1, i])
+                with AssemblyRenderer(assembly) as renderer:
+                    view = renderer.render(sample_camera(rng, assembly.bounds()),
+                                           Appearance.sample(rng, len(assembly.parts)))
+                bounds = assembly.bounds()
+                gt = truth_targets(view, parts, view.camera_from_assembly.apply(0.5 * (bounds[0] + bounds[1])))
+                quat, trans = run_network(model, view.rgb, parts, max_parts)
+                placement = place_parts(quat, trans, parts.normalized, parts.meshes,
+                                        image_elevation_deg=image_elevation_deg(view.rgb))
+                convex = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
+                yield f"{category} {level}", convex, placement, (parts, gt, view.visible_pixels)
+
+
+def isolated_gaps_m(convex: list[ConvexPart], poses) -> list[float]:
+    """For each part touching no other part: the distance to its nearest part (metres)."""
+    graph = contact_graph(convex, poses)
+    gaps = []
+    for i, part in enumerate(convex):
+        if any(other != FLOOR for other in graph.neighbors(part.name)):
+            continue
+        distances = [signed_distance(part, poses[i], other, poses[j], 1.0) for j, other in enumerate(convex)
+                     if j != i]
+        gaps.append(min((d.distance_m for d in distances if d.measured), default=float("inf")))
+    return gaps
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--count", type=int, default=25, help="objects per category and level")
+    parser.add_argument("--setting", action="append", default=[], help="KEY=VALUE[,KEY=VALUE] of RepairSettings "
+                        "(repeatable); the defaults are always measured first")
+    args = parser.parse_args()
+    settings = {"default": RepairSettings()} | {text: parse_setting(text) for text in args.setting}
+    model, config, _, _ = load_for_inference(BUNDLED_WEIGHTS)
+    rows = {name: {"connectivity": [], "one_piece": [], "pa": [], "moved_mm": []} for name in settings}
+    gaps: list[float] = []
+    start = time.perf_counter()
+    with inference_threads(1):
+        for label, convex, placement, (parts, gt, visible) in predicted_objects(args.count, model,
+                                                                                config.model.max_parts):
+            for name, setting in settings.items():
+                repaired, report = repair_poses(convex, placement.assembly_from_part, setting)
+                fraction, whole = connectivity(convex, repaired)
+                quat, trans = network_frame([placement.camera_from_assembly @ p for p in repaired], parts,
+                                            placement.centre_camera_m)
+                result = evaluate_assembly(parts.normalized.points_norm, quat, trans, *gt, parts.classes, visible)
+                row = rows[name]
+                row["connectivity"].append(fraction)
+                row["one_piece"].append(float(whole))
+                row["pa"].append(float(np.mean(result.correct)))
+                row["moved_mm"].append(1000 * max(report.translation_m.values()))
+                if name == "default":
+                    gaps += isolated_gaps_m(convex, repaired)
+            print(f"{label}: {len(rows['default']['pa'])} objects, {time.perf_counter() - start:.0f} s", flush=True)
+    print(f"\n{len(rows['default']['pa'])} objects (seed {TUNING_SEED}), {time.perf_counter() - start:.0f} s\n")
+    print("| settings | connectivity | one piece | PA repaired | largest move mean / max mm |")
+    print("|---|---|---|---|---|")
+    for name, row in rows.items():
+        print(f"| {name} | {np.mean(row['connectivity']):.3f} | {np.mean(row['one_piece']):.3f} | "
+              f"{np.mean(row['pa']):.3f} | {np.mean(row['moved_mm']):.1f} / {np.max(row['moved_mm']):.1f} |")
+    gaps_mm = 1000 * np.array(gaps)
+    print(f"\nParts touching nothing after the default repair: {len(gaps)}; distance to the nearest part (mm): "
+          + ", ".join(f"<= {b}: {int(np.sum(gaps_mm <= b))}" for b in (10, 25, 50, 75, 100, 150, 250))
+          + f", more: {int(np.sum(gaps_mm > 250))}")
+
+
+if __name__ == "__main__":
+    main()
