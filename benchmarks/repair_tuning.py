@@ -97,7 +97,8 @@ def main() -> None:
     args = parser.parse_args()
     settings = {"default": RepairSettings()} | {text: parse_setting(text) for text in args.setting}
     model, config, _, _ = load_for_inference(BUNDLED_WEIGHTS)
-    rows = {name: {"connectivity": [], "one_piece": [], "pa": [], "moved_mm": []} for name in settings}
+    keys = ("connectivity", "one_piece", "pa", "moved_mm", "penetration_mm")
+    rows = {name: {key: [] for key in keys} for name in settings}
     gaps: list[float] = []
     start = time.perf_counter()
     with inference_threads(1):
@@ -114,15 +115,18 @@ def main() -> None:
                 row["one_piece"].append(float(whole))
                 row["pa"].append(float(np.mean(result.correct)))
                 row["moved_mm"].append(1000 * max(report.translation_m.values()))
+                row["penetration_mm"].append(1000 * report.deepest_penetration_after_m)
                 if name == "default":
                     gaps += isolated_gaps_m(convex, repaired)
             print(f"{label}: {len(rows['default']['pa'])} objects, {time.perf_counter() - start:.0f} s", flush=True)
     print(f"\n{len(rows['default']['pa'])} objects (seed {TUNING_SEED}), {time.perf_counter() - start:.0f} s\n")
-    print("| settings | connectivity | one piece | PA repaired | largest move mean / max mm |")
-    print("|---|---|---|---|---|")
+    print("| settings | connectivity | one piece | PA repaired | largest move mean / max mm | deepest penetration "
+          "after mean / max mm |")
+    print("|---|---|---|---|---|---|")
     for name, row in rows.items():
         print(f"| {name} | {np.mean(row['connectivity']):.3f} | {np.mean(row['one_piece']):.3f} | "
-              f"{np.mean(row['pa']):.3f} | {np.mean(row['moved_mm']):.1f} / {np.max(row['moved_mm']):.1f} |")
+              f"{np.mean(row['pa']):.3f} | {np.mean(row['moved_mm']):.1f} / {np.max(row['moved_mm']):.1f} | "
+              f"{np.mean(row['penetration_mm']):.1f} / {np.max(row['penetration_mm']):.1f} |")
     gaps_mm = 1000 * np.array(gaps)
     print(f"\nParts touching nothing after the default repair: {len(gaps)}; distance to the nearest part (mm): "
           + ", ".join(f"<= {b}: {int(np.sum(gaps_mm <= b))}" for b in (10, 25, 50, 75, 100, 150, 250))

@@ -12,7 +12,9 @@ failure). The repair, all in the assembly frame (metres, +z up, floor at z = 0):
    shared between the two parts.
 3. **Connect**: every piece of furniture is one connected whole, so a part that still touches no other part
    (:func:`planning.contact.contact_graph`, the floor not counted) is moved, alone and by translation, into
-   contact with the nearest part within ``connect_distance_m``; then the contact rounds run again.
+   contact with the nearest part within ``connect_distance_m``; then the contact rounds run again. The rounds
+   may part a joined part again (its neighbours move with their other contacts), so this step repeats, at most
+   ``connect_passes`` times.
 4. **Bound**: a part's total displacement is clamped to ``max_translation_m`` and its rotation to
    ``max_rotation_deg``; the report says how far each part moved.
 """
@@ -31,14 +33,13 @@ from planning.pose import Pose, matrix_to_quat, quat_angle_rad
 @dataclass(frozen=True)
 class RepairSettings:
     align_tolerance_deg: float = 8.0
-    # pairs closer than this are pulled together. 2 cm, not 1: on the tuning set of benchmarks/repair_tuning.py
-    # (90 objects never trained or tested on) connectivity went 0.953 -> 0.968 at the same Part Accuracy
-    snap_distance_m: float = 0.02
+    snap_distance_m: float = 0.01
     penetration_tolerance_m: float = 0.0005
     max_translation_m: float = 0.05
     max_rotation_deg: float = 10.0
     iterations: int = 40
     connect_distance_m: float = 0.05  # an isolated part joins its nearest part within this (0: never)
+    connect_passes: int = 3  # join, then contact rounds, at most this many times
 
 
 @dataclass(frozen=True)
@@ -161,10 +162,12 @@ def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSet
         centre_world = pose.apply(_centre(part))
         current.append(Pose.from_rotation(rotation, centre_world - rotation @ _centre(part)))
     current = _contact_rounds(parts, original, current, settings, floor_z_m)
-    if settings.connect_distance_m > 0:
+    for _ in range(settings.connect_passes if settings.connect_distance_m > 0 else 0):
+        # the contact rounds after a join move the joined part's neighbours too and may part it again: join anew
         joined = _connect_isolated(parts, original, current, settings)
-        if joined is not current:
-            current = _contact_rounds(parts, original, joined, settings, floor_z_m)
+        if joined is current:
+            break
+        current = _contact_rounds(parts, original, joined, settings, floor_z_m)
     after = _deepest_penetration(parts, current)
     report = RepairReport(
         translation_m={p.name: float(np.linalg.norm(c.apply(_centre(p)) - o.apply(_centre(p))))
