@@ -7,7 +7,10 @@ prints the layout of the paper's Tables 1 and 2 (Part Accuracy, Shape Chamfer, P
 invisible parts) and writes them to the JSON file (``part_accuracy`` is the overall figure). ``--data`` reads
 views from dataset folders; ``--assemblies`` renders every assembly folder under a folder on the fly and also
 reports connectivity and the figures after pose repair, the up-axis error, inference time and peak memory
-(:mod:`perception.evaluate_assemblies`). ``--checkpoint`` defaults to the bundled weights.
+(:mod:`perception.evaluate_assemblies`). ``--checkpoint`` defaults to the bundled weights. Each view's parts reach
+the network in a random order drawn from ``--seed``, as a user's parts come (procedural objects list them in the
+generator's fixed order, which an order-reading network such as B-GRU would exploit); ``--keep-part-order`` keeps
+the files' order.
 
 In code, :func:`evaluate_samples` takes any iterable of samples in the format of :mod:`perception.data`
 (dictionaries of numpy arrays, one view each): samples read from a dataset folder (:func:`evaluate_folder`) and

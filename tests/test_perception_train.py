@@ -142,6 +142,14 @@ def test_evaluate_cli_writes_part_accuracy(data, uninterrupted, tmp_path):
     figures = json.loads(report.read_text())
     assert 0.0 <= figures["part_accuracy"] <= 1.0 and figures["samples"] == 2
     assert figures["shape_chamfer"] >= 0
+    # the parts reach the network in a random order unless --keep-part-order; the record says which
+    from perception.evaluate import main as evaluate_main
+
+    kept = tmp_path / "kept.json"
+    assert evaluate_main(["--checkpoint", str(uninterrupted / MODEL), "--data", str(data), "--json", str(kept),
+                          "--no-progress", "--keep-part-order"]) == 0
+    assert figures["shuffle_parts"] is True and json.loads(kept.read_text())["shuffle_parts"] is False
+    assert json.loads(kept.read_text())["parts"] == figures["parts"]
 
 
 def test_torchrun_two_processes(data, tmp_path):
