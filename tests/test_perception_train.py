@@ -195,6 +195,9 @@ def test_budget_plan_fills_the_time_at_the_probed_speeds():
     assert seconds_per_step(log, "pose") == pytest.approx(0.1)
     plan = plan_steps({"ours": {"segmentation": 0.2, "pose": 0.1}, "b_gru": {"pose": 0.05}}, 100.0, 0.5, 0.1)
     assert plan == {"ours": {"segmentation": 225, "pose": 450}, "b_gru": {"pose": 1800}}
+    # at equal steps every model gets the pose steps of the slowest
+    equal = plan_steps({"ours": {"segmentation": 0.2, "pose": 0.1}, "b_gru": {"pose": 0.05}}, 100.0, 0.5, 0.1, True)
+    assert equal == {"ours": {"segmentation": 225, "pose": 450}, "b_gru": {"pose": 450}}
     config = planned_config(load_config("compact_gpu"), plan["ours"], validations=9)
     assert (config.train.segmentation.steps, config.train.segmentation.val_every) == (225, 25)
     assert (config.train.pose.steps, config.train.pose.val_every) == (450, 50)

@@ -52,15 +52,20 @@ def seconds_per_step(log: dict, stage: str) -> float:
 
 
 def plan_steps(speeds: dict[str, dict[str, float]], seconds: float, segmentation_share: float,
-               validation_share: float) -> dict[str, dict[str, int]]:
+               validation_share: float, equal_pose_steps: bool = False) -> dict[str, dict[str, int]]:
     """Optimiser steps per model and stage that fill ``seconds`` of training at ``speeds`` (seconds per step),
-    ``validation_share`` of the time set aside for validation."""
+    ``validation_share`` of the time set aside for validation. ``equal_pose_steps``: every model's pose stage
+    gets the fewest pose steps any model can fit, so that the models compare at equal steps (the faster ones
+    finish early) rather than at equal time."""
     usable = seconds * (1.0 - validation_share)
     plan = {}
     for kind, stages in speeds.items():
         shares = {"segmentation": segmentation_share, "pose": 1.0 - segmentation_share} if len(stages) == 2 \
             else {name: 1.0 for name in stages}
         plan[kind] = {name: max(1, int(usable * shares[name] / stages[name])) for name in stages}
+    if equal_pose_steps:
+        fewest = min(stages["pose"] for stages in plan.values())
+        plan = {kind: {**stages, "pose": fewest} for kind, stages in plan.items()}
     return plan
 
 
@@ -137,7 +142,8 @@ def _wait(procs: dict[str, subprocess.Popen], deadline: float, grace: float = 12
 
 def run_budget(config: Config, kinds: list[str], data: list[str], out: Path, minutes: float, probe_steps: int,
                segmentation_share: float, validations: int, validation_share: float,
-               init: dict[str, str] | None = None, margin_s: float = 45.0, min_train_s: float = 60.0) -> dict:
+               init: dict[str, str] | None = None, margin_s: float = 45.0, min_train_s: float = 60.0,
+               equal_pose_steps: bool = False) -> dict:
     """The three steps of the module docstring; ``init``: model kind -> weights file its runs start from;
     ``margin_s``: seconds kept back from the plan for the runs' start-up, last validation and export."""
     init = init or {}
@@ -170,7 +176,7 @@ def run_budget(config: Config, kinds: list[str], data: list[str], out: Path, min
     remaining = deadline - time.monotonic() - margin_s
     if remaining < min_train_s:
         raise RuntimeError(f"{remaining:.0f} s left after the probe: give more --minutes")
-    plan = plan_steps(speeds, remaining, segmentation_share, validation_share)
+    plan = plan_steps(speeds, remaining, segmentation_share, validation_share, equal_pose_steps)
     record["plan"] = {"train_seconds": round(remaining, 1), "steps": plan}
     print(f"plan: {json.dumps(plan)} for {remaining:.0f} s", flush=True)
 
@@ -217,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="share of the time set aside for validation")
     parser.add_argument("--init", action="append", default=[], metavar="MODEL=WEIGHTS",
                         help="start MODEL's runs from these weights (repeatable; see perception.train --init)")
+    parser.add_argument("--equal-pose-steps", action="store_true", help="give every model the same number of pose "
+                        "steps (the fewest any model fits): a comparison at equal steps, not equal time")
     args = parser.parse_args(argv)
     if args.probe_steps < 8:
         parser.error(f"--probe-steps must be at least 8, got {args.probe_steps}")
@@ -231,7 +239,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = load_config(args.config)
         record = run_budget(config, args.models, args.data, args.out, args.minutes, args.probe_steps,
-                            args.segmentation_share, args.validations, args.validation_share, init)
+                            args.segmentation_share, args.validations, args.validation_share, init,
+                            equal_pose_steps=args.equal_pose_steps)
     except (ConfigError, RuntimeError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
