@@ -33,6 +33,7 @@ import platform
 import subprocess
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +44,12 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__)
 
 from cell.render import render_assembly  # noqa: E402
 from perception.evaluate import METHOD_NAMES  # noqa: E402
-from perception.evaluate_assemblies import assembly_folders, evaluate_assemblies, truth_targets  # noqa: E402
+from perception.evaluate_assemblies import (  # noqa: E402
+    DEFAULT_REPAIR,
+    assembly_folders,
+    evaluate_assemblies,
+    truth_targets,
+)
 from perception.placement import place_parts  # noqa: E402
 from perception.predict import prepare_parts  # noqa: E402
 from perception.synth import generate  # noqa: E402
@@ -100,22 +106,26 @@ def methods_from(args) -> tuple[dict[str, Path], list[str]]:
 def evaluate_cached(out: Path, kind: str, checkpoint: Path, label: str, folder: Path, views: int,
                     limit: int, shuffle_parts: bool = True) -> dict:
     path = out / "results" / f"{kind}__{label.replace(' ', '_')}.json"
+    repair_settings = asdict(DEFAULT_REPAIR) if kind == "ours" else None  # only Ours is repaired here
     if path.exists():
         cached = json.loads(path.read_text())
-        # results from before the parts were shuffled carry no shuffle_parts: they kept the folders' order
+        # results from before the parts were shuffled carry no shuffle_parts: they kept the folders' order; the
+        # repair settings count too, since connectivity and the repaired figures follow them
         if (cached.get("checkpoint_mtime"), cached.get("views"), cached.get("limit"),
-                cached.get("shuffle_parts", False)) == (checkpoint.stat().st_mtime, views, limit, shuffle_parts):
+                cached.get("shuffle_parts", False), cached.get("repair_settings")) == (
+                checkpoint.stat().st_mtime, views, limit, shuffle_parts, repair_settings):
             return cached
     model, config, loaded_kind, _ = load_for_inference(checkpoint)
     if loaded_kind != kind:
         raise SystemExit(f"{checkpoint} holds model {loaded_kind!r}, not {kind!r}")
     start = time.perf_counter()
     with inference_threads(1):
-        figures = evaluate_assemblies(model, folder, views=views, seed=RENDER_SEED, repair=kind == "ours",
+        figures = evaluate_assemblies(model, folder, views=views, seed=RENDER_SEED, repair=repair_settings is not None,
                                       max_parts=config.model.max_parts, limit=limit, progress=True,
                                       shuffle_parts=shuffle_parts)
     figures.update(checkpoint=str(checkpoint), checkpoint_mtime=checkpoint.stat().st_mtime, views=views, limit=limit,
-                   shuffle_parts=shuffle_parts, wall_s=time.perf_counter() - start, load=os.getloadavg()[0])
+                   shuffle_parts=shuffle_parts, repair_settings=repair_settings,
+                   wall_s=time.perf_counter() - start, load=os.getloadavg()[0])
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(figures, indent=1) + "\n")
     print(f"{METHOD_NAMES[kind]} on {label}: PA {figures['part_accuracy']:.3f} ({figures['samples']} views, "
