@@ -35,7 +35,7 @@ from perception.predict import prepare_parts, run_network  # noqa: E402
 from perception.synth import generate  # noqa: E402
 from perception.weights import BUNDLED_WEIGHTS, inference_threads, load_for_inference  # noqa: E402
 from planning.collision import ConvexPart, signed_distance  # noqa: E402
-from planning.contact import FLOOR, contact_graph  # noqa: E402
+from planning.contact import contact_graph, touching_no_part  # noqa: E402
 from planning.repair import RepairSettings, repair_poses  # noqa: E402
 
 CATEGORIES = ("chair", "table", "cabinet")
@@ -78,10 +78,10 @@ def predicted_objects(count: int, model, max_parts: int):
 
 def isolated_gaps_m(convex: list[ConvexPart], poses) -> list[float]:
     """For each part touching no other part: the distance to its nearest part (metres)."""
-    graph = contact_graph(convex, poses)
+    alone = touching_no_part(contact_graph(convex, poses))
     gaps = []
     for i, part in enumerate(convex):
-        if any(other != FLOOR for other in graph.neighbors(part.name)):
+        if part.name not in alone:
             continue
         distances = [signed_distance(part, poses[i], other, poses[j], 1.0) for j, other in enumerate(convex)
                      if j != i]

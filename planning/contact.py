@@ -98,6 +98,11 @@ def support_graph(contacts: nx.Graph) -> nx.DiGraph:
     return support
 
 
+def touching_no_part(contacts: nx.Graph) -> set[str]:
+    """The parts of a :func:`contact_graph` that touch no other part (touching only the floor counts as none)."""
+    return {node for node in contacts if node != FLOOR and all(other == FLOOR for other in contacts.neighbors(node))}
+
+
 def all_grounded(contacts: nx.Graph, present: set[str]) -> bool:
     """Whether every part in ``present`` has a path of contacts to the floor through parts in ``present``
     (touching parts are fastened once placed, standing for the connectors)."""

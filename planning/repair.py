@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from planning.collision import ConvexPart, overlapping_pairs, signed_distance
-from planning.contact import FLOOR, contact_graph
+from planning.contact import contact_graph, touching_no_part
 from planning.pose import Pose, matrix_to_quat, quat_angle_rad
 
 
@@ -125,9 +125,8 @@ def _connect_isolated(parts: list[ConvexPart], original: list[Pose], current: li
     moved."""
     if len(parts) < 2:
         return current
-    graph = contact_graph(parts, current)
-    isolated = [i for i, part in enumerate(parts)
-                if not any(other != FLOOR for other in graph.neighbors(part.name))]
+    alone = touching_no_part(contact_graph(parts, current))
+    isolated = [i for i, part in enumerate(parts) if part.name in alone]
     # smallest first: of two parts floating apart, the smaller moves onto the larger
     isolated.sort(key=lambda i: float(np.linalg.norm(np.ptp(parts[i].vertices, axis=0))))
     joined = list(current)

@@ -95,7 +95,7 @@ def test_joining_repeats_when_the_contact_rounds_part_a_joined_part_again():
     """The sample chair, its truth poses moved by 3 cm (sigma): after one join pass and the contact rounds that
     follow it one part touches nothing again (its neighbours moved with their other contacts); the default passes
     join it anew, within the bound."""
-    from planning.contact import FLOOR
+    from planning.contact import touching_no_part
 
     assembly = read_assembly(sample_folder("chair"))
     parts = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
@@ -103,12 +103,11 @@ def test_joining_repeats_when_the_contact_rounds_part_a_joined_part_again():
                       angle_sigma_deg=3.0)
 
     def isolated(poses):
-        graph = contact_graph(parts, poses)
-        return [p.name for p in parts if not any(other != FLOOR for other in graph.neighbors(p.name))]
+        return touching_no_part(contact_graph(parts, poses))
 
     once, _ = repair_poses(parts, noisy, RepairSettings(connect_passes=1))
     settings = RepairSettings()
     assert settings.connect_passes > 1
     repeated, report = repair_poses(parts, noisy, settings)
-    assert len(isolated(once)) == 1 and isolated(repeated) == []
+    assert len(isolated(once)) == 1 and isolated(repeated) == set()
     assert max(report.translation_m.values()) <= settings.max_translation_m + 1e-9
