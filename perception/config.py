@@ -22,6 +22,7 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
 CONFIG_DIR = Path(__file__).parent / "configs"
+PRECISIONS = ("float32", "bfloat16")  # train.precision
 
 
 class ConfigError(ValueError):
@@ -135,9 +136,18 @@ class TrainConfig:
     # present every training and validation sample's parts in a random order (perception.data.permute_parts):
     # the procedural generators list parts in a fixed order (seat, back, legs, ...) that users' parts lack
     shuffle_parts: bool = True
+    # speed, for CPUs with AVX-512 BF16 or AMX and for GPUs (each about halves a pose step of the compact model on
+    # the 2-core machine; both change the numbers in the last bits, so a run resumes only under the same values):
+    # channels_last: convolution weights in channels-last memory layout (oneDNN's and cuDNN's fast path);
+    # precision "bfloat16": the training forward passes under torch.autocast (the losses, validation and the
+    # saved weights stay float32)
+    channels_last: bool = False
+    precision: str = "float32"
 
     def __post_init__(self):
         _positive(self, "checkpoint_minutes", "log_every")
+        if self.precision not in PRECISIONS:
+            raise ConfigError(f"train.precision must be one of {list(PRECISIONS)}, got {self.precision!r}")
         unknown = [name for name in self.stages if name not in ("segmentation", "pose")]
         if unknown or not self.stages or len(set(self.stages)) != len(self.stages):
             raise ConfigError(f"train.stages must name segmentation and/or pose once each, got {list(self.stages)}")

@@ -1,5 +1,7 @@
 """Configuration files: the bundled ones load, mistakes are refused naming the field."""
 
+import re
+
 import pytest
 
 from perception.config import CONFIG_DIR, Config, ConfigError, config_from_dict, config_to_toml, load_config
@@ -18,11 +20,11 @@ def test_bundled_configs_load_and_round_trip(name, tmp_path):
 
 
 def test_gpu_configs_keep_the_compact_network():
-    """The GPU-trained weights are bundled in place of the CPU-trained ones: the same network."""
+    """The GPU-trained weights are bundled in place of the CPU-trained ones, and fine-tuned: the same network."""
     compact = load_config("compact")
-    for name in ("compact_gpu", "compact_gpu_pose"):
+    for name in ("compact_gpu", "compact_gpu_pose", "compact_cpu_pose"):
         assert load_config(name).model == compact.model and load_config(name).loss == compact.loss
-    assert load_config("compact_gpu_pose").train.stages == ("pose",)
+    assert load_config("compact_gpu_pose").train.stages == load_config("compact_cpu_pose").train.stages == ("pose",)
 
 
 def test_paper_sizes():
@@ -54,12 +56,13 @@ def test_defaults():
     ("[modle]\n", "unknown field modle"),
     ("[train]\nstages = ['pose', 'pose']\n", "train.stages must name segmentation and/or pose once each"),
     ("[train]\nstages = ['masks']\n", "train.stages must name segmentation and/or pose once each"),
+    ("[train]\nprecision = 'float16'\n", "train.precision must be one of ['float32', 'bfloat16'], got 'float16'"),
     ("[model\n", "line 1"),
 ])
 def test_mistakes_name_the_field(tmp_path, text, message):
     path = tmp_path / "bad.toml"
     path.write_text(text)
-    with pytest.raises(ConfigError, match=message.replace(".", r"\.")) as info:
+    with pytest.raises(ConfigError, match=re.escape(message)) as info:
         load_config(path)
     assert str(path) in str(info.value)
 

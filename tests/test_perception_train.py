@@ -124,6 +124,54 @@ def test_a_model_fine_tunes_into_the_decoder_conditioned_at_every_scale(data, un
                  "--init", str(out / CHECKPOINT), "--stop-after", "1"]) == 2
 
 
+def test_bfloat16_channels_last_run_resumes_and_exports_float32_weights(data, uninterrupted, tmp_path, capsys):
+    """train.precision = "bfloat16" with train.channels_last: both stages train with finite losses, a resumed run
+    repeats the uninterrupted one, and the exported weights are float32 that load into the default layout."""
+    config_file = tmp_path / "fast.toml"
+    config_file.write_text((CONFIG_DIR / "tiny.toml").read_text().replace(
+        "[train]\n", '[train]\nprecision = "bfloat16"\nchannels_last = true\n'))
+    args = ["--config", str(config_file), "--data", str(data), "--no-progress"]
+    assert main([*args, "--out", str(tmp_path / "full")]) == 0
+    log = json.loads((tmp_path / "full" / LOG).read_text())
+    assert log["finished"] and log["config"]["train"]["precision"] == "bfloat16"
+    assert all(math.isfinite(r["loss"]) for stage in log["stages"].values() for r in stage["train"])
+    resumed = tmp_path / "resumed"
+    assert main([*args, "--out", str(resumed), "--stop-after", "4"]) == 0
+    assert main([*args, "--out", str(resumed)]) == 0
+    a, b = weights(tmp_path / "full" / MODEL), weights(resumed / MODEL)
+    assert [k for k in a if not torch.equal(a[k], b[k])] == []
+    assert all(v.dtype == torch.float32 for v in a.values() if v.is_floating_point())
+    assert any(not torch.equal(a[k], v) for k, v in weights(uninterrupted / MODEL).items())  # it trained
+    model, config, _ = load_model(tmp_path / "full" / MODEL)  # the default layout, for inference
+    assert config.train.channels_last and model.state_dict().keys() == a.keys()
+    # a float32 run in the default layout does not resume this checkpoint: the numbers would differ
+    capsys.readouterr()
+    assert main(["--config", "tiny", "--data", str(data), "--out", str(resumed), "--no-progress"]) == 2
+    assert "train.channels_last" in capsys.readouterr().err
+
+
+def test_bfloat16_forward_gives_nearly_the_float32_pose_loss(data, uninterrupted):
+    """The autocast forward computes the same losses to bfloat16's precision (the outputs reach the losses as
+    float32)."""
+    from dataclasses import replace
+
+    from perception.train.stages import PoseStage
+
+    model, config, _ = load_model(uninterrupted / MODEL)
+    batch = collate([ViewDataset(object_files([data], "train"))[k] for k in range(4)])
+    losses = {}
+    for precision in ("float32", "bfloat16"):
+        stage = PoseStage(replace(config, train=replace(config.train, precision=precision)))
+        stage.set_modes(model)
+        model.eval()  # the batch statistics of four samples aside, the same function
+        with torch.no_grad():
+            terms = stage.loss(stage.trainable(model), model, batch)
+        assert terms["loss"].dtype == torch.float32
+        losses[precision] = float(terms["loss"])
+    assert losses["bfloat16"] == pytest.approx(losses["float32"], rel=0.05)
+    assert losses["bfloat16"] != losses["float32"]  # autocast did run
+
+
 def test_baseline_trains(data, tmp_path):
     out = tmp_path / "gru"
     assert main(["--config", "tiny", "--data", str(data), "--out", str(out), "--no-progress", "--model", "b_gru",

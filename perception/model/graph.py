@@ -38,7 +38,7 @@ def knn_adjacency(centres: torch.Tensor, valid: torch.Tensor, k: int) -> torch.T
     distance = distance.masked_fill(~allowed, float("inf"))
     values, index = distance.topk(k, dim=2, largest=False)
     adjacency = centres.new_zeros(b, p, p)
-    adjacency.scatter_(2, index, torch.isfinite(values).float())
+    adjacency.scatter_(2, index, torch.isfinite(values).to(adjacency.dtype))
     return adjacency
 
 

@@ -150,6 +150,8 @@ def _run_stages(config, out, kind, max_steps, stop_after, progress, dist, stop_f
         raise ConfigError("no training data: give --data DIR or data.paths in the config")
     seed_everything(config.train.seed)
     model = build_model(config.model, kind).to(dist.device)
+    if config.train.channels_last:  # kept by every load_state_dict below (it copies into the parameters)
+        model.to(memory_format=torch.channels_last)
     state = TrainState()
     checkpoint_path = out / CHECKPOINT
     if checkpoint_path.exists():

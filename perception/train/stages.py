@@ -6,6 +6,9 @@ validated by the mean matched soft IoU), then ``pose`` (the pose network on the 
 segmentation network, frozen by default; loss: the four pose losses on both phases; validated by Part
 Accuracy, ties broken by the pose loss). With ``train.freeze_segmentation = false`` the pose stage fine-tunes
 both networks on the sum of the pose and segmentation losses. The baselines have the pose stage only.
+
+With ``train.precision = "bfloat16"`` the training forward passes run under ``torch.autocast`` and their outputs
+are cast back to float32 before the losses (whose matching hands costs to scipy); validation runs in float32.
 """
 
 from __future__ import annotations
@@ -19,12 +22,39 @@ from perception.metrics import MetricSummary, evaluate_batch
 from perception.model import AssemblyNet
 
 
+def to_float32(value):
+    """``value`` with every floating-point tensor in it (nested in dicts, lists and tuples) as float32."""
+    if torch.is_tensor(value):
+        return value.float() if value.is_floating_point() else value
+    if isinstance(value, dict):
+        return {key: to_float32(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(to_float32(item) for item in value)
+    return value
+
+
+class Forward:
+    """Runs a stage's training forward passes at ``train.precision``: ``forward(fn, *args)`` is ``fn(*args)``,
+    under bfloat16 autocast (outputs cast back to float32) when the config asks for it."""
+
+    def __init__(self, config: Config):
+        self.bfloat16 = config.train.precision == "bfloat16"
+
+    def __call__(self, fn, *args):
+        if not self.bfloat16:
+            return fn(*args)
+        device = next(t.device for t in args[0].values() if torch.is_tensor(t))  # args[0]: the batch
+        with torch.autocast(device_type=device.type, dtype=torch.bfloat16):
+            return to_float32(fn(*args))
+
+
 class SegmentationStage:
     name = "segmentation"
 
     def __init__(self, config: Config):
         self.config = config
         self.schedule: StageConfig = config.train.segmentation
+        self.forward = Forward(config)
 
     def trainable(self, model: nn.Module) -> nn.Module:
         return model.segmentation
@@ -37,7 +67,7 @@ class SegmentationStage:
             p.requires_grad_(True)
 
     def loss(self, net: nn.Module, model: nn.Module, batch: dict) -> dict:
-        return segmentation_loss(net(batch), batch, self.config.loss)
+        return segmentation_loss(self.forward(net, batch), batch, self.config.loss)
 
     @torch.no_grad()
     def validate(self, model: nn.Module, batches) -> tuple[dict, tuple]:
@@ -59,6 +89,7 @@ class PoseStage:
         self.config = config
         self.schedule: StageConfig = config.train.pose
         self.freeze = config.train.freeze_segmentation
+        self.forward = Forward(config)
 
     def _frozen(self, model: nn.Module) -> bool:
         return isinstance(model, AssemblyNet) and self.freeze
@@ -78,11 +109,11 @@ class PoseStage:
     def loss(self, net: nn.Module, model: nn.Module, batch: dict) -> dict:
         if self._frozen(model):
             with torch.no_grad():
-                masks = model.segmentation(batch)["masks"]
-            out = net(batch, masks)
+                masks = self.forward(model.segmentation, batch)["masks"]
+            out = self.forward(net, batch, masks)
             out["quat"], out["trans"] = out["poses"][-1]
             return model_pose_loss(out, batch, self.config.loss)
-        out = net(batch)
+        out = self.forward(net, batch)
         terms = model_pose_loss(out, batch, self.config.loss)
         if isinstance(model, AssemblyNet):  # fine-tuning both networks: keep the masks supervised
             seg = segmentation_loss(out, batch, self.config.loss)
