@@ -10,10 +10,12 @@ i])``; :mod:`perception.evaluate_assemblies`), its parts in a random order (``--
 its ``assembly.json``, which for procedural objects is the generator's fixed order), and scored as
 ``python -m perception.evaluate --assemblies`` scores it. Methods: ``--method KIND=CHECKPOINT`` (repeatable); by
 default Ours is the bundled weights and each baseline is ``runs/<kind>/model.pt`` when it exists. A missing
-baseline is listed with the command that trains it:
+baseline is listed with the command that trains it on the bundled weights' data (built by the commands of
+``perception/weights/README.md``) within a wall-clock budget:
 
-    python -m perception.train --config compact --model b_gru --data data/chair_l3 data/table_l3 data/cabinet_l3 \
-        data/chair_mixed data/table_mixed data/cabinet_mixed --out runs/b_gru    # likewise b_insonehot, b_global
+    python -m perception.train.budget --config compact_gpu --models b_gru --minutes 60 --data data_slim/chair_3 \
+        data_slim/table_3 data_slim/cabinet_3 data_slim/chair_mixed data_slim/table_mixed data_slim/cabinet_mixed \
+        --out runs    # -> runs/b_gru/model.pt; likewise b_insonehot, b_global
 
 Every evaluation is cached as JSON under ``OUT/results/`` (delete it to measure again); the Markdown tables are
 printed and written to ``OUT/perception.md``. Inference runs on one thread, one object at a time, as
@@ -63,16 +65,17 @@ LEVELS = ("3", "mixed")
 TEST_SEED = 1000  # geometry: never used for training (training data: --seed 0)
 RENDER_SEED = 1
 BASELINES = ("b_gru", "b_insonehot", "b_global")
-TRAIN_DATA = "data/chair_l3 data/table_l3 data/cabinet_l3 data/chair_mixed data/table_mixed data/cabinet_mixed"
+# the bundled weights' training data (perception/weights/README.md builds it)
+TRAIN_DATA = ("data_slim/chair_3 data_slim/table_3 data_slim/cabinet_3 data_slim/chair_mixed data_slim/table_mixed "
+              "data_slim/cabinet_mixed")
 
 
 def train_command(kind: str) -> str:
+    """The command that trains the weights ``methods_from`` looks for by default (``runs/<kind>/model.pt``)."""
     if kind == "ours":
-        return (f"python -m perception.train --config compact --data {TRAIN_DATA} --out runs/compact && "
-                f"python -m perception.train --config compact_finetune --init runs/compact/model.pt "
-                f"--data {TRAIN_DATA} --out runs/compact_ft && "
-                f"cp runs/compact_ft/model.pt perception/weights/compact.pt")
-    return f"python -m perception.train --config compact --model {kind} --data {TRAIN_DATA} --out runs/{kind}"
+        return "the commands of perception/weights/README.md (they made perception/weights/compact.pt)"
+    return (f"python -m perception.train.budget --config compact_gpu --models {kind} --minutes 60 "
+            f"--data {TRAIN_DATA} --out runs")
 
 
 def build_sets(out: Path, count: int) -> dict[str, Path]:
