@@ -1,10 +1,11 @@
 """Matching and the paper's metrics on hand-made cases."""
 
 import numpy as np
+import pytest
 import torch
 
 from perception.matching import batch_match, match_within_classes
-from perception.metrics import MetricSummary, evaluate_assembly, pose_clouds
+from perception.metrics import MetricSummary, evaluate_assembly, part_accuracy_difference, pose_clouds
 from perception.pointcloud import chamfer_distance
 
 
@@ -108,3 +109,23 @@ def test_batch_matching_respects_padding():
     perm = batch_match(cost, classes, valid)
     assert perm[0].tolist()[:3] == [1, 0, 2] and perm[0].tolist()[3:] == [3, 4]
     assert perm[1, 4].item() == 4 and sorted(perm[1, 1:4].tolist()) == [1, 2, 3]
+
+
+def test_paired_difference_of_part_accuracy():
+    """The difference is the pooled Part Accuracy's; its interval is narrow when one method wins on every object,
+    wide and across zero when the methods trade wins, and an empty or inconsistent count is refused."""
+    rng = np.random.default_rng(5)
+    parts = rng.integers(4, 15, size=200)
+    b = rng.binomial(parts, 0.5)
+    better = np.minimum(b + 1, parts)  # one part more on every object
+    win = part_accuracy_difference(better, b, parts)
+    assert win.difference == pytest.approx((better.sum() - b.sum()) / parts.sum())
+    assert win.significant and 0 < win.low < win.difference < win.high and win.objects == 200
+    traded = part_accuracy_difference(rng.binomial(parts, 0.5), rng.binomial(parts, 0.5), parts)
+    assert traded.low < 0 < traded.high and not traded.significant
+    assert part_accuracy_difference(b, better, parts).high < 0  # the other way round
+    assert part_accuracy_difference(better, b, parts, seed=1) != win  # another resampling draw
+    with pytest.raises(ValueError, match="one count per object"):
+        part_accuracy_difference(b, better[:-1], parts)
+    with pytest.raises(ValueError, match="at most as many"):
+        part_accuracy_difference(parts + 1, b, parts)
