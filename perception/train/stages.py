@@ -34,18 +34,18 @@ def to_float32(value):
 
 
 class Forward:
-    """Runs a stage's training forward passes at ``train.precision``: ``forward(fn, *args)`` is ``fn(*args)``,
-    under bfloat16 autocast (outputs cast back to float32) when the config asks for it."""
+    """Runs a stage's training forward passes at ``train.precision``: ``forward(fn, batch, *args)`` is
+    ``fn(batch, *args)``, under bfloat16 autocast on the batch's device (outputs cast back to float32) when the
+    config asks for it."""
 
     def __init__(self, config: Config):
         self.bfloat16 = config.train.precision == "bfloat16"
 
-    def __call__(self, fn, *args):
+    def __call__(self, fn, batch: dict, *args):
         if not self.bfloat16:
-            return fn(*args)
-        device = next(t.device for t in args[0].values() if torch.is_tensor(t))  # args[0]: the batch
-        with torch.autocast(device_type=device.type, dtype=torch.bfloat16):
-            return to_float32(fn(*args))
+            return fn(batch, *args)
+        with torch.autocast(device_type=batch["image"].device.type, dtype=torch.bfloat16):
+            return to_float32(fn(batch, *args))
 
 
 class SegmentationStage:
