@@ -136,8 +136,9 @@ class TrainConfig:
     # present every training and validation sample's parts in a random order (perception.data.permute_parts):
     # the procedural generators list parts in a fixed order (seat, back, legs, ...) that users' parts lack
     shuffle_parts: bool = True
-    # speed, for CPUs with AVX-512 BF16 or AMX and for GPUs (each about halves a pose step of the compact model on
-    # the 2-core machine; both change the numbers in the last bits, so a run resumes only under the same values):
+    # speed, for CPUs with AVX-512 BF16 or AMX and for GPUs (together 1.7x faster pose steps of the compact model on
+    # the 2-core machine, benchmarks/training_step_speed.py; both change the numbers in the last bits, so a run
+    # resumes only under the same values):
     # channels_last: convolution weights in channels-last memory layout (oneDNN's and cuDNN's fast path);
     # precision "bfloat16": the training forward passes under torch.autocast (the losses, validation and the
     # saved weights stay float32)
