@@ -236,9 +236,10 @@ def paired_table(results: dict, labels: list[str]) -> list[str]:
                 cells.append("-")  # not scored on the same views
                 continue
             parts = np.array([ours[n]["parts"] for n in names])
-            correct = [np.round([d[n]["part_accuracy"] * d[n]["parts"] for n in names]) for d in (ours, other)]
-            d = part_accuracy_difference(correct[0], correct[1], parts)
-            cells.append(f"{d.difference:+.3f} [{d.low:+.3f}, {d.high:+.3f}]{'*' if d.significant else ''}")
+            correct = [np.round([views[n]["part_accuracy"] * views[n]["parts"] for n in names])
+                       for views in (ours, other)]
+            gap = part_accuracy_difference(correct[0], correct[1], parts)
+            cells.append(f"{gap.difference:+.3f} [{gap.low:+.3f}, {gap.high:+.3f}]{'*' if gap.significant else ''}")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return lines
 
