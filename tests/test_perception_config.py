@@ -22,9 +22,10 @@ def test_bundled_configs_load_and_round_trip(name, tmp_path):
 def test_gpu_configs_keep_the_compact_network():
     """The GPU-trained weights are bundled in place of the CPU-trained ones, and fine-tuned: the same network."""
     compact = load_config("compact")
-    for name in ("compact_gpu", "compact_gpu_pose", "compact_cpu_pose"):
+    for name in ("compact_gpu", "compact_gpu_pose", "compact_cpu_pose", "compact_cpu_both"):
         assert load_config(name).model == compact.model and load_config(name).loss == compact.loss
     assert load_config("compact_gpu_pose").train.stages == load_config("compact_cpu_pose").train.stages == ("pose",)
+    assert load_config("compact_cpu_both").train.stages == ("segmentation", "pose")
 
 
 def test_paper_sizes():
