@@ -5,6 +5,12 @@ A file has the sections ``[model]``, ``[loss]``, ``[train]`` (with sub-tables ``
 changes. Unknown fields, wrong types and out-of-range values are refused with the field's dotted name
 (``model.image_size must be ...``). Bundled files: ``perception/configs/paper.toml`` (the paper's sizes),
 ``compact.toml`` (CPU-trainable, the bundled weights) and ``tiny.toml`` (tests).
+
+A file may start from another: a top-level ``base = "compact_gpu"`` (a bundled config's name, or a path relative to
+the file's folder) reads that file first, and this file's values replace its values field by field (tables merge,
+a list or a value replaces the whole). The fine-tuning configs use it, so that each says only what it changes.
+Training runs write the resolved configuration (:func:`config_to_toml`, no ``base``), so a run's record stands on
+its own.
 """
 
 from __future__ import annotations
@@ -242,18 +248,56 @@ def config_from_dict(data: dict) -> Config:
     return _build(Config, data, "")
 
 
-def load_config(path: str | Path) -> Config:
-    """Read a TOML config file. ``path`` may also be a bundled config's name (``compact``, ``paper``, ``tiny``)."""
-    path = Path(path)
-    if not path.exists() and not path.suffix and (CONFIG_DIR / f"{path}.toml").exists():
-        path = CONFIG_DIR / f"{path}.toml"
+BASE_KEY = "base"  # top-level key of a config file naming the file it starts from
+
+
+def _resolve_path(name: str | Path, folder: Path | None = None) -> Path:
+    """A config file path: ``name`` itself (relative to ``folder`` where given), else a bundled config's name."""
+    path = Path(name)
+    if folder is not None and not path.is_absolute():
+        path = folder / path
+    if not path.exists() and not Path(name).suffix and (CONFIG_DIR / f"{name}.toml").exists():
+        path = CONFIG_DIR / f"{name}.toml"
+    return path
+
+
+def _merge(base: dict, override: dict) -> dict:
+    """``base`` with ``override``'s values in place: tables merge recursively, anything else replaces."""
+    merged = dict(base)
+    for key, value in override.items():
+        merged[key] = _merge(merged[key], value) if isinstance(value, dict) and isinstance(merged.get(key), dict) \
+            else value
+    return merged
+
+
+def _read_toml(path: Path, chain: tuple[Path, ...] = ()) -> dict:
+    """The tables of a config file with its ``base`` chain merged in (the file's own values last)."""
     try:
         with open(path, "rb") as handle:
             data = tomllib.load(handle)
     except FileNotFoundError:
-        raise ConfigError(f"config file {path} not found") from None
+        where = f" (the base of {chain[-1]})" if chain else ""
+        raise ConfigError(f"config file {path}{where} not found") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: {exc}") from None
+    if BASE_KEY not in data:
+        return data
+    base = data.pop(BASE_KEY)
+    if not isinstance(base, str) or not base:
+        raise ConfigError(f"{path}: {BASE_KEY} must be a config name or path, got {base!r}")
+    base_path = _resolve_path(base, path.parent)
+    chain = (*chain, path)
+    if base_path.resolve() in {p.resolve() for p in chain}:
+        raise ConfigError(f"{path}: {BASE_KEY} = {base!r} makes a cycle: "
+                          + " -> ".join(str(p) for p in (*chain, base_path)))
+    return _merge(_read_toml(base_path, chain), data)
+
+
+def load_config(path: str | Path) -> Config:
+    """Read a TOML config file, its ``base`` chain merged in. ``path`` may also be a bundled config's name
+    (``compact``, ``paper``, ``tiny``)."""
+    path = _resolve_path(path)
+    data = _read_toml(path)
     try:
         return config_from_dict(data)
     except ConfigError as exc:

@@ -71,3 +71,40 @@ def test_mistakes_name_the_field(tmp_path, text, message):
 def test_missing_file():
     with pytest.raises(ConfigError, match="not found"):
         load_config("no_such_config")
+
+
+def test_base_merges_field_by_field(tmp_path):
+    """A file that starts from another replaces only what it names; tables merge, lists replace whole."""
+    (tmp_path / "parent.toml").write_text('base = "compact"\n[train.pose]\nlr = 5e-4\nbatch_size = 16\n')
+    (tmp_path / "child.toml").write_text('base = "parent.toml"\n[train]\nstages = ["pose"]\n[train.pose]\nlr = 1e-4\n')
+    compact, child = load_config("compact"), load_config(tmp_path / "child.toml")
+    assert child.train.pose.lr == 1e-4 and child.train.pose.batch_size == 16
+    assert child.train.stages == ("pose",)
+    assert child.train.pose.warmup_steps == compact.train.pose.warmup_steps
+    assert child.model == compact.model and child.train.segmentation == compact.train.segmentation
+    # a run's record is the resolved configuration: it reads back the same without its base files
+    written = tmp_path / "resolved" / "config.toml"
+    written.parent.mkdir()
+    written.write_text(config_to_toml(child))
+    assert "base" not in written.read_text() and load_config(written) == child
+
+
+def test_bundled_fine_tuning_configs_start_from_their_base():
+    assert load_config("compact_cpu_both").train.pose == load_config("compact_cpu_pose").train.pose
+    assert load_config("compact_cpu_both").train.segmentation.lr == 1e-3
+    assert load_config("compact_gpu_pose").train.segmentation == load_config("compact_gpu").train.segmentation
+
+
+@pytest.mark.parametrize("files, message", [
+    ({"bad.toml": 'base = "bad.toml"\n'}, "makes a cycle"),
+    ({"bad.toml": 'base = "other.toml"\n', "other.toml": 'base = "bad.toml"\n'}, "makes a cycle"),
+    ({"bad.toml": 'base = "missing.toml"\n'}, "(the base of"),
+    ({"bad.toml": "base = 3\n"}, "base must be a config name or path, got 3"),
+    ({"bad.toml": 'base = "compact"\n[model]\nimage_size = 100\n'}, "model.image_size must be a multiple of 32"),
+])
+def test_bad_base_is_refused_naming_the_file(tmp_path, files, message):
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    with pytest.raises(ConfigError, match=re.escape(message)) as info:
+        load_config(tmp_path / "bad.toml")
+    assert "bad.toml" in str(info.value)
