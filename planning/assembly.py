@@ -87,6 +87,25 @@ class Assembly:
         return np.stack([corners.min(axis=0), corners.max(axis=0)])
 
 
+def stretched(assembly: Assembly, factors_xyz) -> Assembly:
+    """``assembly`` scaled by ``factors_xyz`` (three positive numbers) along the assembly frame's x, y and z, about
+    its origin: a longer, lower, deeper variant of the same object (the floor stays at z = 0, the footprint's
+    centre at the origin). Each part keeps its rotation R, its position is scaled, and its mesh (its own frame,
+    metres) is deformed by R^T S R, so that every vertex lands where S takes it in the assembly frame."""
+    factors = np.asarray(factors_xyz, dtype=np.float64).reshape(-1)
+    if factors.shape != (3,) or not np.all(np.isfinite(factors)) or np.any(factors <= 0):
+        raise ValueError(f"stretch factors must be three positive numbers, got {np.asarray(factors_xyz).tolist()}")
+    parts = []
+    for part in assembly.parts:
+        pose = part.assembly_from_part
+        deform = np.eye(4)
+        deform[:3, :3] = pose.rotation.T @ np.diag(factors) @ pose.rotation
+        mesh = part.mesh.copy()
+        mesh.apply_transform(deform)
+        parts.append(AssemblyPart(part.name, mesh, Pose(factors * pose.position, pose.quat_wxyz), part.mesh_file))
+    return Assembly(assembly.name, parts, dict(assembly.metadata))
+
+
 # ---------------------------------------------------------------------------------------------------------
 # reading
 # ---------------------------------------------------------------------------------------------------------

@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 import trimesh
 
-from planning.assembly import Assembly, AssemblyError, AssemblyPart, read_assembly, read_poses, write_assembly
+from planning.assembly import (
+    Assembly,
+    AssemblyError,
+    AssemblyPart,
+    read_assembly,
+    read_poses,
+    stretched,
+    write_assembly,
+)
 from planning.pose import Pose
 
 FURNITURE = Path(__file__).resolve().parents[2] / "shared" / "furniture"
@@ -122,3 +130,18 @@ def test_invalid_json(folder):
     shutil.rmtree(folder)
     with pytest.raises(AssemblyError, match="does not exist"):
         read_assembly(folder)
+
+
+def test_stretched_moves_every_vertex_by_the_axis_factors():
+    """The top box is turned 0.6 rad about z, so its mesh must shear in its own frame to stay a stretched box."""
+    stack, factors = two_box_stack(), np.array([2.0, 0.5, 1.5])
+    longer = stretched(stack, factors)
+    for before, after in zip(stack.meshes_in_assembly_frame(), longer.meshes_in_assembly_frame()):
+        np.testing.assert_allclose(after.vertices, before.vertices * factors, atol=1e-12)
+    np.testing.assert_allclose(longer.bounds(), stack.bounds() * factors, atol=1e-12)
+    assert longer.bounds()[0, 2] == 0.0  # still on the floor
+    for before, after in zip(stack.parts, longer.parts):  # rotations kept, the input untouched
+        np.testing.assert_allclose(after.assembly_from_part.quat_wxyz, before.assembly_from_part.quat_wxyz)
+    np.testing.assert_allclose(stack.parts[1].mesh.extents, [0.1, 0.1, 0.05])
+    with pytest.raises(ValueError, match="three positive numbers"):
+        stretched(stack, [1.0, 0.0, 1.0])

@@ -162,3 +162,26 @@ def test_dataset_draws_a_part_order_per_sample_and_epoch(built):
     assert first == order_of(again[2]["points"], reference) and first != list(range(len(reference)))
     shuffled.set_epoch(1)
     assert order_of(shuffled[2]["points"], reference) != first
+
+
+def test_stretched_build_changes_proportions_not_the_labels(tmp_path):
+    """--stretch scales each object along its axes before rendering; the camera labels stay exact, so the
+    truth up (assembly +z in the camera frame) is the same formula, and an older folder's dataset.json without
+    the key still resumes."""
+    plain, wide = BuildConfig("table", "3", 1, 1, 5), BuildConfig("table", "3", 1, 1, 5, stretch=2.0)
+    build(plain, tmp_path / "plain", progress=False)
+    build(wide, tmp_path / "wide", progress=False)
+    a, b = (load_object(object_path(tmp_path / name, plain, 0)) for name in ("plain", "wide"))
+    extent_a = np.ptp(a["assembly_from_part_position_m"], axis=0)
+    extent_b = np.ptp(b["assembly_from_part_position_m"], axis=0)
+    factors = extent_b / extent_a
+    assert np.all(factors >= 0.5 - 1e-9) and np.all(factors <= 2.0 + 1e-9) and np.ptp(factors) > 0.05
+    assert not np.array_equal(a["images"], b["images"])
+    np.testing.assert_allclose(a["camera_from_assembly_quat_wxyz"], b["camera_from_assembly_quat_wxyz"], atol=1e-9)
+    config_path = tmp_path / "plain" / "dataset.json"
+    older = json.loads(config_path.read_text())
+    del older["stretch"]
+    config_path.write_text(json.dumps(older))
+    assert build(plain, tmp_path / "plain", progress=False)["objects_built"] == 0
+    with pytest.raises(ValueError, match="stretch: 1.0 there, 2.0 asked"):
+        build(wide, tmp_path / "plain", progress=False)

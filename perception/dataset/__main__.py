@@ -22,6 +22,8 @@ def main(argv: list[str] | None = None) -> int:
     b.add_argument("--out", type=Path, required=True)
     b.add_argument("--workers", type=int, default=1)
     b.add_argument("--renderer", choices=["tiny", "egl", "auto"], default="tiny")
+    b.add_argument("--stretch", type=float, default=1.0, help="scale each object by a random factor in "
+                   "[1/STRETCH, STRETCH] along each axis before rendering (1: the generator's proportions)")
     s = commands.add_parser("slim", help="a training-only copy: the arrays training reads, each part cloud cut to "
                             "its first --points points, quantised to int8 (to ship a dataset to a GPU machine)")
     s.add_argument("source", type=Path, help="a folder made by build")
@@ -36,7 +38,9 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("count", "views", "workers"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be at least 1, got {getattr(args, name)}")
-    config = BuildConfig(args.category, args.level, args.count, args.views, args.seed, args.renderer)
+    if not args.stretch >= 1.0 or args.stretch == float("inf"):
+        parser.error(f"--stretch must be a finite number of at least 1, got {args.stretch}")
+    config = BuildConfig(args.category, args.level, args.count, args.views, args.seed, args.renderer, args.stretch)
     try:
         stats = build(config, args.out, workers=args.workers)
     except ValueError as exc:

@@ -6,6 +6,11 @@ object as ``python -m perception.synth`` with that seed) and rendered from ``def
 same arguments give the same arrays, whatever the number of workers. The split is by object: i % 10 == 8 is
 validation, i % 10 == 9 test, the rest training. Files are written atomically and existing ones are skipped, so
 an interrupted build resumes where it stopped.
+
+``stretch`` > 1 scales each object, before rendering, by a random factor along each of its assembly frame's axes
+(log-uniform in [1/stretch, stretch], from ``default_rng([seed, i, 2])``; :func:`planning.assembly.stretched`):
+proportions the generators do not draw (long low units, tall narrow shelves), for networks that should not read
+the category's usual proportions (the elevation head).
 """
 
 from __future__ import annotations
@@ -15,13 +20,14 @@ import multiprocessing
 import os
 import tempfile
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from perception.dataset.sample import object_sample
+from planning.assembly import stretched
 
 CONFIG_FILE = "dataset.json"
 
@@ -34,6 +40,7 @@ class BuildConfig:
     views: int  # rendered views per object: count * views samples in all
     seed: int
     renderer: str = "tiny"
+    stretch: float = 1.0  # largest per-axis scale factor (1: the generator's proportions)
 
 
 def split_of(index: int) -> str:
@@ -54,6 +61,9 @@ def build_object(config: BuildConfig, index: int) -> dict:
 
     assembly = generate(config.category, config.level, np.random.default_rng([config.seed, index]),
                         object_name(config, index))
+    if config.stretch > 1.0:
+        span = np.log(config.stretch)
+        assembly = stretched(assembly, np.exp(np.random.default_rng([config.seed, index, 2]).uniform(-span, span, 3)))
     sample = object_sample(assembly, config.views, np.random.default_rng([config.seed, index, 1]),
                            renderer=config.renderer)
     sample["object_name"] = np.array(assembly.name)
@@ -85,8 +95,10 @@ def _check_config(out: Path, config: BuildConfig) -> None:
     config_path = out / CONFIG_FILE
     if config_path.exists():
         existing = json.loads(config_path.read_text())
-        mismatched = {k: (existing.get(k), v) for k, v in asdict(config).items()
-                      if k != "count" and existing.get(k) != v}
+        defaults = {f.name: f.default for f in fields(BuildConfig) if f.default is not MISSING}
+        # a key a folder's dataset.json lacks was added since: the folder was built with its default
+        mismatched = {k: (existing.get(k, defaults.get(k)), v) for k, v in asdict(config).items()
+                      if k != "count" and existing.get(k, defaults.get(k)) != v}
         if mismatched:
             details = ", ".join(f"{k}: {a!r} there, {b!r} asked" for k, (a, b) in mismatched.items())
             raise ValueError(f"{config_path} was built with other settings ({details}); choose another --out")
