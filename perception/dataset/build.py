@@ -94,11 +94,11 @@ def _work(job: tuple[BuildConfig, int, str]) -> int:
 def _check_config(out: Path, config: BuildConfig) -> None:
     config_path = out / CONFIG_FILE
     if config_path.exists():
-        existing = json.loads(config_path.read_text())
         defaults = {f.name: f.default for f in fields(BuildConfig) if f.default is not MISSING}
         # a key a folder's dataset.json lacks was added since: the folder was built with its default
-        mismatched = {k: (existing.get(k, defaults.get(k)), v) for k, v in asdict(config).items()
-                      if k != "count" and existing.get(k, defaults.get(k)) != v}
+        existing = {**defaults, **json.loads(config_path.read_text())}
+        mismatched = {k: (existing.get(k), v) for k, v in asdict(config).items()
+                      if k != "count" and existing.get(k) != v}
         if mismatched:
             details = ", ".join(f"{k}: {a!r} there, {b!r} asked" for k, (a, b) in mismatched.items())
             raise ValueError(f"{config_path} was built with other settings ({details}); choose another --out")
