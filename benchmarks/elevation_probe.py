@@ -58,16 +58,13 @@ FURNITURE_SEED = 1  # benchmarks/perception_accuracy.py's RENDER_SEED
 def furniture_views(root: Path, seed: int = FURNITURE_SEED) -> tuple[list[str], np.ndarray, np.ndarray]:
     """(names, images (N, 3, 56, 56) uint8, elevations (N,) degrees): one rendering of every assembly folder under
     ``root``, drawn exactly as :func:`perception.evaluate_assemblies.evaluate_assemblies` draws its first view."""
-    from cell.render import Appearance, AssemblyRenderer, sample_camera
+    from cell.render import render_assembly
     from perception.evaluate_assemblies import assembly_folders, shuffled_parts
     from planning.assembly import read_assembly
 
     names, images, elevations = [], [], []
     for index, folder in enumerate(assembly_folders(root)):
-        assembly = shuffled_parts(read_assembly(folder), seed, index)
-        rng = np.random.default_rng([seed, index])
-        with AssemblyRenderer(assembly) as renderer:
-            view = renderer.render(sample_camera(rng, assembly.bounds()), Appearance.sample(rng, len(assembly.parts)))
+        view = render_assembly(shuffled_parts(read_assembly(folder), seed, index), np.random.default_rng([seed, index]))
         up = view.camera_from_assembly.rotation[:, 2]  # assembly +z in the camera frame
         names.append(folder.name)
         images.append(downsample(view.rgb))

@@ -26,7 +26,7 @@ import numpy as np
 # Run as a script, this file's folder comes first on sys.path and its name would hide the perception package.
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
-from cell.render import Appearance, AssemblyRenderer, sample_camera  # noqa: E402
+from cell.render import render_assembly  # noqa: E402
 from perception.elevation import image_elevation_deg  # noqa: E402
 from perception.evaluate_assemblies import connectivity, network_frame, shuffled_parts, truth_targets  # noqa: E402
 from perception.metrics import evaluate_assembly  # noqa: E402
@@ -63,10 +63,7 @@ def predicted_objects(count: int, model, max_parts: int):
                 assembly = generate(category, level, np.random.default_rng([TUNING_SEED, i]), f"{category}_{i}")
                 assembly = shuffled_parts(assembly, TUNING_SEED, i)
                 parts = prepare_parts([p.mesh for p in assembly.parts])
-                rng = np.random.default_rng([1, i])
-                with AssemblyRenderer(assembly) as renderer:
-                    view = renderer.render(sample_camera(rng, assembly.bounds()),
-                                           Appearance.sample(rng, len(assembly.parts)))
+                view = render_assembly(assembly, np.random.default_rng([1, i]))
                 bounds = assembly.bounds()
                 gt = truth_targets(view, parts, view.camera_from_assembly.apply(0.5 * (bounds[0] + bounds[1])))
                 quat, trans = run_network(model, view.rgb, parts, max_parts)
