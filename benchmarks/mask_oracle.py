@@ -5,8 +5,11 @@ masks (one-hot from the rendered part labels) given to its pose module in their 
 Then, with its own masks, where its failed parts go wrong: the share of them that would pass with the true
 rotation (their predicted translation kept) and with the true translation (their predicted rotation kept), the
 median error of the predicted translation along each camera axis (x right, y down, z depth; normalised units) for
-failed and for correct parts, and the soft IoU of each part's predicted mask with the true mask of the part it is
-matched to (at the mask's resolution).
+failed and for correct parts, the soft IoU of each part's predicted mask with the true mask of the part it is
+matched to (at the mask's resolution), and how far apart Ours puts equivalent parts: for each part with an
+equivalent, the distance from its predicted translation to the nearest predicted translation of an equivalent part,
+against the same distance between the true translations (medians, normalised units; a network that cannot tell
+equivalent parts apart hedges and draws them together).
 
     python benchmarks/mask_oracle.py --checkpoint perception/weights/compact.pt --data data/gpu_chair_3 \\
         data/gpu_table_3 data/gpu_cabinet_3 --split test --limit 300
@@ -40,15 +43,27 @@ def truth_masks(batch: dict) -> torch.Tensor:
     return (labels.unsqueeze(1) == parts).float()
 
 
+def nearest_equivalent_distance(trans: np.ndarray, classes: np.ndarray) -> np.ndarray:
+    """(N,) distance from each part's translation (N, 3) to the nearest translation of another part of its
+    equivalence class; nan for a part alone in its class."""
+    distance = np.linalg.norm(trans[:, None] - trans[None], axis=-1)
+    distance[(classes[:, None] != classes[None]) | np.eye(len(trans), dtype=bool)] = np.inf
+    nearest = distance.min(axis=1)
+    return np.where(np.isfinite(nearest), nearest, np.nan)
+
+
 def failure_breakdown(outputs: dict, batch: dict) -> dict[str, np.ndarray]:
     """Per part of every object of a batch (concatenated): ``correct``; ``pass_true_rotation`` and
     ``pass_true_translation`` (correct once that half of the pose is replaced by its matched true value);
     ``translation_error`` (3,) predicted minus true, camera axes, normalised units; ``mask_iou`` of the predicted
-    mask with the matched part's true mask (nan where that part shows no pixel at the mask's resolution)."""
+    mask with the matched part's true mask (nan where that part shows no pixel at the mask's resolution);
+    ``spacing_predicted`` and ``spacing_true``: distance to the nearest equivalent part's translation, predicted
+    and true (nan for a part with no equivalent)."""
     masks = outputs["masks"]
     truth = torch.nn.functional.interpolate(truth_masks(batch), size=masks.shape[-2:], mode="nearest")
     rows: dict[str, list] = {key: [] for key in ("correct", "pass_true_rotation", "pass_true_translation",
-                                                 "translation_error", "mask_iou")}
+                                                 "translation_error", "mask_iou", "spacing_predicted",
+                                                 "spacing_true")}
     for b, valid in enumerate(as_numpy(batch["valid"])):
         idx = np.flatnonzero(valid)
         points, classes = as_numpy(batch["points"][b])[idx], as_numpy(batch["classes"][b])[idx]
@@ -62,6 +77,8 @@ def failure_breakdown(outputs: dict, batch: dict) -> dict[str, np.ndarray]:
         rows["pass_true_translation"].append(
             evaluate_assembly(points, quat, true_trans[match], true_quat, true_trans, classes).correct)
         rows["translation_error"].append(trans - true_trans[match])
+        rows["spacing_predicted"].append(nearest_equivalent_distance(trans, classes))
+        rows["spacing_true"].append(nearest_equivalent_distance(true_trans[match], classes))
         predicted, true = as_numpy(masks[b])[idx], as_numpy(truth[b])[idx][match]
         union = np.maximum(predicted, true).sum((1, 2))
         rows["mask_iou"].append(np.where(true.sum((1, 2)) > 0, np.minimum(predicted, true).sum((1, 2))
@@ -84,11 +101,15 @@ def summarise_failures(parts: dict[str, np.ndarray]) -> dict:
         return float(np.nanmean(parts["mask_iou"][mask])) if np.isfinite(parts["mask_iou"][mask]).any() \
             else float("nan")
 
+    def spacing(key):
+        return round(float(np.nanmedian(parts[key])), 4) if np.isfinite(parts[key]).any() else float("nan")
+
     return {"parts": int(len(failed)), "failed": int(failed.sum()),
             "failed_pass_with_true_rotation": share(parts["pass_true_rotation"]),
             "failed_pass_with_true_translation": share(parts["pass_true_translation"]),
             "median_abs_translation_error_xyz": {"failed": axes(failed), "correct": axes(correct)},
-            "mask_soft_iou": {"failed": iou(failed), "correct": iou(correct)}}
+            "mask_soft_iou": {"failed": iou(failed), "correct": iou(correct)},
+            "equivalent_spacing": {"predicted": spacing("spacing_predicted"), "true": spacing("spacing_true")}}
 
 
 @torch.no_grad()
@@ -128,8 +149,9 @@ def main() -> int:
               f"{failures['failed_pass_with_true_rotation']:.2f} of them pass, with the true translation "
               f"{failures['failed_pass_with_true_translation']:.2f}; median |translation error| x, y, depth: failed "
               f"{errors['failed']}, correct {errors['correct']}; mask soft IoU failed "
-              f"{failures['mask_soft_iou']['failed']:.3f}, correct {failures['mask_soft_iou']['correct']:.3f}",
-              flush=True)
+              f"{failures['mask_soft_iou']['failed']:.3f}, correct {failures['mask_soft_iou']['correct']:.3f}; "
+              f"equivalent parts' median spacing predicted {failures['equivalent_spacing']['predicted']}, true "
+              f"{failures['equivalent_spacing']['true']}", flush=True)
     if args.json:
         args.json.write_text(json.dumps(results, indent=1) + "\n")
     return 0
