@@ -94,6 +94,18 @@ def _direction_words(direction) -> str:
     return "[" + ", ".join(f"{v:.2f}" for v in d) + "]"
 
 
+def wrapped_caption(caption: str, text_width_px, width_px: float) -> str:
+    """``caption`` broken into lines (joined by newlines) at spaces so that no line is wider than ``width_px``
+    as measured by ``text_width_px(text)``; a single word wider than that keeps a line of its own."""
+    lines: list[str] = []
+    for word in caption.split():
+        if lines and text_width_px(f"{lines[-1]} {word}") <= width_px:
+            lines[-1] = f"{lines[-1]} {word}"
+        else:
+            lines.append(word)
+    return "\n".join(lines)
+
+
 def overview_image(image_rgb: np.ndarray | None, target: Assembly, final: Assembly | None,
                    seed: int = 0, target_caption: str = "target assembly",
                    result_caption: str = "simulated result") -> np.ndarray:
@@ -126,6 +138,7 @@ def overview_image(image_rgb: np.ndarray | None, target: Assembly, final: Assemb
     except TypeError:  # Pillow < 10.1: the small bitmap font
         font = ImageFont.load_default()
     for k, caption in enumerate(captions):
+        caption = wrapped_caption(caption, lambda text: draw.textlength(text, font=font), OVERVIEW_PANEL_PX - 16)
         left, top, right, bottom = draw.textbbox((k * OVERVIEW_PANEL_PX + 6, 4), caption, font=font)
         draw.rectangle([left - 4, top - 3, right + 4, bottom + 3], fill=(255, 255, 255))
         draw.text((k * OVERVIEW_PANEL_PX + 6, 4), caption, fill=(0, 0, 0), font=font)
