@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -94,7 +95,7 @@ def _direction_words(direction) -> str:
     return "[" + ", ".join(f"{v:.2f}" for v in d) + "]"
 
 
-def wrapped_caption(caption: str, text_width_px, width_px: float) -> str:
+def wrapped_caption(caption: str, text_width_px: Callable[[str], float], width_px: float) -> str:
     """``caption`` broken into lines (joined by newlines) at spaces so that no line is wider than ``width_px``
     as measured by ``text_width_px(text)``; a single word wider than that keeps a line of its own."""
     lines: list[str] = []
@@ -138,6 +139,7 @@ def overview_image(image_rgb: np.ndarray | None, target: Assembly, final: Assemb
     except TypeError:  # Pillow < 10.1: the small bitmap font
         font = ImageFont.load_default()
     for k, caption in enumerate(captions):
+        # the text starts 6 px into its panel and its white box reaches 4 px beyond it on each side
         caption = wrapped_caption(caption, lambda text: draw.textlength(text, font=font), OVERVIEW_PANEL_PX - 16)
         left, top, right, bottom = draw.textbbox((k * OVERVIEW_PANEL_PX + 6, 4), caption, font=font)
         draw.rectangle([left - 4, top - 3, right + 4, bottom + 3], fill=(255, 255, 255))
