@@ -29,6 +29,20 @@ ANIMATION_FRAME_S = 0.4  # simulated seconds between the frames of animation.gif
 ANIMATION_FPS = 10.0  # its playback: 4x the simulated speed
 
 
+def crossing_note(overlapping_pairs: tuple[tuple[str, str, float], ...], max_overlap_m: float,
+                  max_translation_m: float) -> str:
+    """One line for the console when repaired targets still overlap by more than ``max_overlap_m`` (metres): the
+    deepest pair and how many more; "" when none does. Such parts cross (a panel through a panel): the repair
+    moves no part more than ``max_translation_m``, and the cell builds the targets as they are."""
+    deep = [pair for pair in overlapping_pairs if pair[2] > max_overlap_m]
+    if not deep:
+        return ""
+    a, b, depth = deep[0]
+    more = f" (and {len(deep) - 1} more pair(s) by over {max_overlap_m * 1000:.0f} mm)" if len(deep) > 1 else ""
+    return (f"after repair {a!r} and {b!r} still overlap by {depth * 1000:.0f} mm{more}: the prediction crosses "
+            f"them, more than a repair bounded to {max_translation_m * 1000:.0f} mm per part can undo")
+
+
 class Pipeline:
     def __init__(self, scene: Scene, parts: Parts, image: np.ndarray | None, given: dict[str, Pose] | None,
                  args: argparse.Namespace, console, report: dict) -> None:
@@ -111,19 +125,25 @@ class Pipeline:
 
     def _repair(self, assembly: Assembly) -> Assembly:
         from planning.collision import ConvexPart
-        from planning.repair import repair_poses
+        from planning.repair import RepairSettings, repair_poses
 
         if self.given is not None and not REPAIR_GIVEN_POSES:
             self.report["repair"] = {"applied": False, "reason": "poses given"}
             return assembly
         convex = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
-        poses, repair = repair_poses(convex, [p.assembly_from_part for p in assembly.parts])
+        settings = RepairSettings()
+        poses, repair = repair_poses(convex, [p.assembly_from_part for p in assembly.parts], settings)
         for name in assembly.part_names:
             self.entries[name]["repair"] = {"translation_m": repair.translation_m[name],
                                             "rotation_deg": repair.rotation_deg[name]}
         self.report["repair"] = {"applied": True,
                                  "deepest_penetration_before_m": repair.deepest_penetration_before_m,
-                                 "deepest_penetration_after_m": repair.deepest_penetration_after_m}
+                                 "deepest_penetration_after_m": repair.deepest_penetration_after_m,
+                                 "overlapping_pairs_after": [{"parts": [a, b], "depth_m": depth}
+                                                             for a, b, depth in repair.overlapping_pairs_after]}
+        crossing = crossing_note(repair.overlapping_pairs_after, MAX_GIVEN_OVERLAP_M, settings.max_translation_m)
+        if crossing:
+            self.console.say(f"    {crossing}")
         return assembly_with_poses(assembly, dict(zip(assembly.part_names, poses)))
 
     # --- 3-7: sequence, kitting, motion, timing, simulation ---------------------------------------------------

@@ -12,7 +12,9 @@ user's do: :func:`shuffled_parts`), run through the model exactly as
 - connectivity: the fraction of parts touching at least one other part (:func:`planning.contact.contact_graph`
   in the predicted upright assembly frame), and the fraction of objects whose parts form one connected whole;
 - the same after :func:`planning.repair.repair_poses` (mapped back to the network's frame for PA and SC), and
-  the deepest penetration between two parts before and after it (metres);
+  the deepest penetration between two parts before and after it (metres); the views whose parts still cross
+  after it (a pair overlapping by more than :data:`CROSSING_M`), and how many of those pairs are equivalent
+  parts (the network hedges between parts it cannot tell apart);
 - the up-axis error (degrees between the predicted and the true up direction, camera frame), the CPU time of
   inference per object (normalising the parts, the network, up and frames; not rendering or repair) and the
   process's peak resident memory.
@@ -30,6 +32,7 @@ import numpy as np
 from torch import nn
 from tqdm import tqdm
 
+from cell.pipeline import MAX_GIVEN_OVERLAP_M
 from cell.render import Appearance, AssemblyRenderer, Rendering, sample_camera
 from perception.elevation import image_elevation_deg
 from perception.metrics import AssemblyResult, MetricSummary, evaluate_assembly
@@ -86,6 +89,11 @@ def connectivity(convex: list[ConvexPart], assembly_from_part: list[Pose]) -> tu
     return touching / graph.number_of_nodes(), nx.is_connected(graph)
 
 
+CROSSING_M = MAX_GIVEN_OVERLAP_M
+"""Two parts overlapping by more than this after repair (metres) cross: beyond what a connector's hole or a model's
+slack explains, the most ``python -m cell.run`` allows given targets."""
+
+
 @dataclass
 class ViewOutcome:
     """The figures of one rendered view of one object."""
@@ -100,6 +108,7 @@ class ViewOutcome:
     inference_cpu_s: float  # CPU time of this process (all its threads): the measure a busy machine disturbs least
     depth_error_m: float
     penetration_m: dict = field(default_factory=dict)  # deepest penetration between two parts: before, after repair
+    deepest_overlap_after: dict | None = None  # after repair: {"parts": [a, b], "depth_m", "equivalent"}
 
 
 @dataclass
@@ -127,6 +136,13 @@ class Accumulator:
             figures["deepest_penetration_m"] = {
                 key: _stats(np.array([o.penetration_m[key] for o in self.outcomes if o.penetration_m]))
                 for key in ("before", "after")}
+            crossing = [o.deepest_overlap_after for o in self.outcomes if o.deepest_overlap_after is not None
+                        and o.deepest_overlap_after["depth_m"] > CROSSING_M]
+            repaired_views = sum(o.after is not None for o in self.outcomes)
+            figures["crossing_after_repair"] = {
+                "threshold_m": CROSSING_M, "views": len(crossing) / max(repaired_views, 1),
+                "deepest_pair_equivalent": float(np.mean([c["equivalent"] for c in crossing])) if crossing
+                else float("nan")}
         figures["up_error_deg"] = _stats(up) | {"within_5_deg": float(np.mean(up <= 5.0)) if len(up) else float("nan")}
         figures["depth_error_m"] = _stats(np.array([o.depth_error_m for o in self.outcomes]))
         figures["inference_s"] = _stats(seconds)
@@ -181,6 +197,11 @@ def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: 
     truth_poses = [p.assembly_from_part for p in assembly.parts]
     repaired, report = repair_poses(convex, placement.assembly_from_part, repair_settings)
     outcome.penetration_m = {"before": report.deepest_penetration_before_m, "after": report.deepest_penetration_after_m}
+    if report.overlapping_pairs_after:
+        a, b, depth = report.overlapping_pairs_after[0]
+        index = {part.name: k for k, part in enumerate(convex)}
+        outcome.deepest_overlap_after = {"parts": [a, b], "depth_m": depth,
+                                         "equivalent": bool(parts.classes[index[a]] == parts.classes[index[b]])}
     camera_from_repaired = [placement.camera_from_assembly @ p for p in repaired]
     quat_r, trans_r = network_frame(camera_from_repaired, parts, placement.centre_camera_m)
     outcome.after = evaluate_assembly(points, quat_r, trans_r, gt_quat, gt_trans, classes, view.visible_pixels)
@@ -233,6 +254,7 @@ def evaluate_assemblies(model: nn.Module, root: str | Path, views: int = 1, seed
         {"name": o.name, "parts": o.parts, "part_accuracy": float(np.mean(o.before.correct)),
          "part_accuracy_repaired": float(np.mean(o.after.correct)) if o.after is not None else None,
          "up_error_deg": round(o.up_error_deg, 3), "inference_s": round(o.inference_s, 4),
-         "inference_cpu_s": round(o.inference_cpu_s, 4), **o.connectivity}
+         "inference_cpu_s": round(o.inference_cpu_s, 4), "deepest_overlap_after": o.deepest_overlap_after,
+         **o.connectivity}
         for o in accumulator.outcomes]
     return figures

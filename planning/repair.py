@@ -16,7 +16,8 @@ failure). The repair, all in the assembly frame (metres, +z up, floor at z = 0):
    may part a joined part again (its neighbours move with their other contacts), so this step repeats, at most
    ``connect_passes`` times.
 4. **Bound**: a part's total displacement is clamped to ``max_translation_m`` and its rotation to
-   ``max_rotation_deg``; the report says how far each part moved.
+   ``max_rotation_deg``; the report says how far each part moved, and which pairs still overlap: parts the
+   prediction crossed (a panel through a panel) overlap by more than the bound can undo, and stay so.
 """
 
 from __future__ import annotations
@@ -44,12 +45,15 @@ class RepairSettings:
 
 @dataclass(frozen=True)
 class RepairReport:
-    """How far each part moved (metres, degrees), and the contacts before and after."""
+    """How far each part moved (metres, degrees), the deepest penetration before and after (metres), and the
+    pairs that still overlap by more than ``penetration_tolerance_m`` after: (name a, name b, depth in metres),
+    deepest first."""
 
     translation_m: dict[str, float]
     rotation_deg: dict[str, float]
     deepest_penetration_before_m: float
     deepest_penetration_after_m: float
+    overlapping_pairs_after: tuple[tuple[str, str, float], ...] = ()
 
 
 def snap_rotation_to_axes(rotation: np.ndarray, tolerance_deg: float) -> np.ndarray:
@@ -167,13 +171,14 @@ def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSet
         if joined is current:
             break
         current = _contact_rounds(parts, original, joined, settings, floor_z_m)
-    after = _deepest_penetration(parts, current)
+    overlapping_after = overlapping_pairs(parts, current)
     report = RepairReport(
         translation_m={p.name: float(np.linalg.norm(c.apply(_centre(p)) - o.apply(_centre(p))))
                        for p, o, c in zip(parts, original, current)},
         rotation_deg={p.name: float(np.degrees(quat_angle_rad(o.quat_wxyz, c.quat_wxyz)))
                       for p, o, c in zip(parts, original, current)},
         deepest_penetration_before_m=before,
-        deepest_penetration_after_m=after,
+        deepest_penetration_after_m=overlapping_after[0][2] if overlapping_after else 0.0,
+        overlapping_pairs_after=tuple(pair for pair in overlapping_after if pair[2] > settings.penetration_tolerance_m),
     )
     return current, report

@@ -242,6 +242,9 @@ def test_full_run_from_the_picture(small_chair, tiny_checkpoint, tmp_path, capsy
     assert report["exit_code"] == code and report["success"] == (code == 0)
     assert report["perception"]["model"] == "ours"
     assert report["repair"]["applied"] is True
+    overlaps = report["repair"]["overlapping_pairs_after"]
+    names = {part["name"] for part in report["parts"]}
+    assert all(set(o["parts"]) <= names and o["depth_m"] > 0 for o in overlaps)
     for part in report["parts"]:
         for key in ("predicted_camera_from_part", "predicted_assembly_from_part", "target_assembly_from_part"):
             assert np.isfinite(part[key]["position"]).all()
@@ -253,6 +256,16 @@ def test_full_run_from_the_picture(small_chair, tiny_checkpoint, tmp_path, capsy
     assert "targets came from the picture" in capsys.readouterr().err
     width, height = Image.open(out / "overview.png").size  # input image | target | simulated result (if any)
     assert width == (2 if code == 3 else 3) * height
+
+
+def test_crossing_note_names_the_deepest_pair_over_the_limit():
+    from cell.pipeline import crossing_note
+
+    pairs = (("side_left", "back", 0.092), ("top", "door", 0.041), ("shelf", "back", 0.002))
+    note = crossing_note(pairs, max_overlap_m=0.03, max_translation_m=0.05)
+    assert "'side_left' and 'back' still overlap by 92 mm (and 1 more pair(s) by over 30 mm)" in note
+    assert "bounded to 50 mm" in note
+    assert crossing_note(pairs[2:], max_overlap_m=0.03, max_translation_m=0.05) == ""
 
 
 def test_a_top_slides_down_between_its_sides(tmp_path):

@@ -46,6 +46,13 @@ def test_cli_writes_part_accuracy_and_the_extra_figures(checkpoint, folder, tmp_
     assert 0.0 <= figures["after_repair"]["part_accuracy"] <= 1.0
     assert 0.0 <= figures["up_error_deg"]["mean"] <= 90.0 and figures["inference_s"]["mean"] > 0
     assert figures["peak_memory_mb"] > 0 and len(figures["per_object"]) == 4
+    assert "parts still crossing after repair" in result.stdout
+    # the share of crossing views is the per-view deepest overlaps over the threshold, counted
+    overlaps = [o["deepest_overlap_after"] for o in figures["per_object"]]
+    crossing = [o for o in overlaps if o is not None and o["depth_m"] > figures["crossing_after_repair"]["threshold_m"]]
+    assert figures["crossing_after_repair"]["views"] == pytest.approx(len(crossing) / 4)
+    assert all(len(o["parts"]) == 2 and o["depth_m"] > 0 and isinstance(o["equivalent"], bool)
+               for o in overlaps if o is not None)
 
 
 def test_same_seed_gives_the_same_figures(checkpoint, folder):

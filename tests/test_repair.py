@@ -35,6 +35,7 @@ def test_repair_restores_contacts_and_removes_penetration(category):
     repaired, report = repair_poses(parts, noisy, settings)
     assert report.deepest_penetration_before_m > 0.002
     assert report.deepest_penetration_after_m <= 0.001
+    assert all(depth <= 0.001 for _, _, depth in report.overlapping_pairs_after)
     assert max(report.translation_m.values()) <= settings.max_translation_m + 1e-9
     assert max(report.rotation_deg.values()) <= settings.max_rotation_deg + 1e-6
     # the generator builds along the axes: aligned faces come back exactly
@@ -55,6 +56,25 @@ def test_moves_are_bounded():
     assert repaired[top].position[2] > poses[top].position[2] + 0.01  # pushed up out of the legs
     assert all(v <= 0.02 + 1e-9 for v in report.translation_m.values())
     assert max(report.translation_m.values()) == pytest.approx(0.02, abs=1e-6)  # the bound was needed
+
+
+def test_crossed_panels_stay_crossed_and_are_reported():
+    """Two panels through each other (a cross, 150 mm deep) need more than the bound to part: the repair moves
+    each by at most the bound and reports the pair, deepest first."""
+    import trimesh
+
+    panel = trimesh.creation.box([0.3, 0.015, 0.4])
+    parts = [ConvexPart.from_mesh("front", panel), ConvexPart.from_mesh("side", panel),
+             ConvexPart.from_mesh("shelf", trimesh.creation.box([0.1, 0.1, 0.01]))]
+    quarter_turn_z = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    poses = [Pose([0.0, 0.0, 0.2], [1.0, 0.0, 0.0, 0.0]), Pose.from_rotation(quarter_turn_z, [0.0, 0.0, 0.2]),
+             Pose([0.5, 0.0, 0.005], [1.0, 0.0, 0.0, 0.0])]
+    settings = RepairSettings(connect_distance_m=0.0)
+    _, report = repair_poses(parts, poses, settings)
+    assert max(report.translation_m.values()) == pytest.approx(settings.max_translation_m, abs=1e-6)
+    (a, b, depth), = report.overlapping_pairs_after  # the shelf apart on the floor overlaps nothing
+    assert {a, b} == {"front", "side"}
+    assert depth > 0.15 - 2 * settings.max_translation_m - 1e-3 and depth == report.deepest_penetration_after_m
 
 
 def test_snap_rotation():
