@@ -247,17 +247,20 @@ def paired_table(results: dict, labels: list[str]) -> list[str]:
 def ours_details(ours: dict) -> list[str]:
     lines = ["| set | PA | PA visible | PA invisible | SC | PA repaired | SC repaired | connectivity truth / "
              "predicted / repaired | one piece predicted / repaired | deepest penetration before / after mm | "
-             "up error mean / p95 deg | within 5 deg | inference wall mean / p95 s (CPU mean) |", "|---" * 13 + "|"]
+             "crossing after repair (deepest pair equivalent) | up error mean / p95 deg | within 5 deg | "
+             "inference wall mean / p95 s (CPU mean) |", "|---" * 14 + "|"]
     for label, f in ours.items():
         c, up, t, r = f["connectivity"], f["up_error_deg"], f["inference_s"], f.get("after_repair", {})
         pen = f.get("deepest_penetration_m", {"before": {"mean": None}, "after": {"mean": None}})
         pen_mm = [None if pen[k]["mean"] is None else 1000 * pen[k]["mean"] for k in ("before", "after")]
+        crossing = f.get("crossing_after_repair", {})  # absent from results cached before session 29
         lines.append(
             f"| {label} | {fmt(f['part_accuracy'])} | {fmt(f['part_accuracy_visible'])} | "
             f"{fmt(f['part_accuracy_invisible'])} | {fmt(f['shape_chamfer'], 4)} | {fmt(r.get('part_accuracy'))} | "
             f"{fmt(r.get('shape_chamfer'), 4)} | {fmt(c['truth'])} / {fmt(c['predicted'])} / {fmt(c['repaired'])} | "
             f"{fmt(c['predicted_connected'])} / {fmt(c['repaired_connected'])} | {fmt(pen_mm[0], 1)} / "
-            f"{fmt(pen_mm[1], 1)} | {fmt(up['mean'], 1)} / {fmt(up['p95'], 1)} | {fmt(up['within_5_deg'])} | "
+            f"{fmt(pen_mm[1], 1)} | {fmt(crossing.get('views'))} ({fmt(crossing.get('deepest_pair_equivalent'))}) | "
+            f"{fmt(up['mean'], 1)} / {fmt(up['p95'], 1)} | {fmt(up['within_5_deg'])} | "
             f"{fmt(t['mean'], 2)} / {fmt(t['p95'], 2)} ({fmt(f.get('inference_cpu_s', {}).get('mean'), 2)}) |")
     return lines
 
