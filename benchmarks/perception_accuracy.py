@@ -247,8 +247,8 @@ def paired_table(results: dict, labels: list[str]) -> list[str]:
 def ours_details(ours: dict) -> list[str]:
     lines = ["| set | PA | PA visible | PA invisible | SC | PA repaired | SC repaired | connectivity truth / "
              "predicted / repaired | one piece predicted / repaired | deepest penetration before / after mm | "
-             "crossing after repair (deepest pair equivalent) | up error mean / p95 deg | within 5 deg | "
-             "inference wall mean / p95 s (CPU mean) |", "|---" * 14 + "|"]
+             "crossing after repair (deepest pair equivalent) | PA of crossing / other views | "
+             "up error mean / p95 deg | within 5 deg | inference wall mean / p95 s (CPU mean) |", "|---" * 15 + "|"]
     for label, f in ours.items():
         c, up, t, r = f["connectivity"], f["up_error_deg"], f["inference_s"], f.get("after_repair", {})
         pen = f.get("deepest_penetration_m", {"before": {"mean": None}, "after": {"mean": None}})
@@ -260,6 +260,7 @@ def ours_details(ours: dict) -> list[str]:
             f"{fmt(r.get('shape_chamfer'), 4)} | {fmt(c['truth'])} / {fmt(c['predicted'])} / {fmt(c['repaired'])} | "
             f"{fmt(c['predicted_connected'])} / {fmt(c['repaired_connected'])} | {fmt(pen_mm[0], 1)} / "
             f"{fmt(pen_mm[1], 1)} | {fmt(crossing.get('views'))} ({fmt(crossing.get('deepest_pair_equivalent'))}) | "
+            f"{fmt(crossing.get('part_accuracy_crossing'))} / {fmt(crossing.get('part_accuracy_other'))} | "
             f"{fmt(up['mean'], 1)} / {fmt(up['p95'], 1)} | {fmt(up['within_5_deg'])} | "
             f"{fmt(t['mean'], 2)} / {fmt(t['p95'], 2)} ({fmt(f.get('inference_cpu_s', {}).get('mean'), 2)}) |")
     return lines

@@ -133,7 +133,9 @@ def format_extras(figures: dict) -> str:
         crossing = figures["crossing_after_repair"]
         lines.append(f"parts still crossing after repair (a pair overlapping by over "
                      f"{1000 * crossing['threshold_m']:.0f} mm): {crossing['views']:.3f} of the views; the deepest "
-                     f"pair equivalent parts in {crossing['deepest_pair_equivalent']:.3f} of those")
+                     f"pair equivalent parts in {crossing['deepest_pair_equivalent']:.3f} of those; PA (mean over "
+                     f"views) {crossing['part_accuracy_crossing']:.3f} there, {crossing['part_accuracy_other']:.3f} in "
+                     "the others")
     lines.append(f"up-axis error (deg): mean {up['mean']:.2f}, median {up['median']:.2f}, p95 {up['p95']:.2f}, "
                  f"max {up['max']:.2f}; within 5 deg: {up['within_5_deg']:.3f}")
     lines.append(f"depth of the object centre, error (m): mean {figures['depth_error_m']['mean']:.4f}, "

@@ -136,13 +136,20 @@ class Accumulator:
             figures["deepest_penetration_m"] = {
                 key: _stats(np.array([o.penetration_m[key] for o in self.outcomes if o.penetration_m]))
                 for key in ("before", "after")}
-            crossing = [o.deepest_overlap_after for o in self.outcomes if o.deepest_overlap_after is not None
+            repaired = [o for o in self.outcomes if o.after is not None]
+            crossing = [o for o in repaired if o.deepest_overlap_after is not None
                         and o.deepest_overlap_after["depth_m"] > CROSSING_M]
-            repaired_views = sum(o.after is not None for o in self.outcomes)
+            other = [o for o in repaired if o not in crossing]
+
+            def mean_part_accuracy(views):  # over views, before repair (nan for none)
+                return float(np.mean([np.mean(o.before.correct) for o in views])) if views else float("nan")
+
             figures["crossing_after_repair"] = {
-                "threshold_m": CROSSING_M, "views": len(crossing) / max(repaired_views, 1),
-                "deepest_pair_equivalent": float(np.mean([c["equivalent"] for c in crossing])) if crossing
-                else float("nan")}
+                "threshold_m": CROSSING_M, "views": len(crossing) / max(len(repaired), 1),
+                "deepest_pair_equivalent": float(np.mean([o.deepest_overlap_after["equivalent"] for o in crossing]))
+                if crossing else float("nan"),
+                "part_accuracy_crossing": mean_part_accuracy(crossing),
+                "part_accuracy_other": mean_part_accuracy(other)}
         figures["up_error_deg"] = _stats(up) | {"within_5_deg": float(np.mean(up <= 5.0)) if len(up) else float("nan")}
         figures["depth_error_m"] = _stats(np.array([o.depth_error_m for o in self.outcomes]))
         figures["inference_s"] = _stats(seconds)

@@ -51,6 +51,12 @@ def test_cli_writes_part_accuracy_and_the_extra_figures(checkpoint, folder, tmp_
     overlaps = [o["deepest_overlap_after"] for o in figures["per_object"]]
     crossing = [o for o in overlaps if o is not None and o["depth_m"] > figures["crossing_after_repair"]["threshold_m"]]
     assert figures["crossing_after_repair"]["views"] == pytest.approx(len(crossing) / 4)
+    crossing_names = {o["name"] for o in figures["per_object"] if o["deepest_overlap_after"] in crossing}
+    for key, views in (("part_accuracy_crossing", [o for o in figures["per_object"] if o["name"] in crossing_names]),
+                       ("part_accuracy_other", [o for o in figures["per_object"] if o["name"] not in crossing_names])):
+        expected = np.mean([o["part_accuracy"] for o in views]) if views else None
+        assert (np.isnan(figures["crossing_after_repair"][key]) if expected is None
+                else figures["crossing_after_repair"][key] == pytest.approx(expected))
     assert all(len(o["parts"]) == 2 and o["depth_m"] > 0 and isinstance(o["equivalent"], bool)
                for o in overlaps if o is not None)
 
