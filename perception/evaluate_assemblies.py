@@ -13,8 +13,8 @@ user's do: :func:`shuffled_parts`), run through the model exactly as
   in the predicted upright assembly frame), and the fraction of objects whose parts form one connected whole;
 - the same after :func:`planning.repair.repair_poses` (mapped back to the network's frame for PA and SC), and
   the deepest penetration between two parts before and after it (metres); the views whose parts still cross
-  after it (a pair overlapping by more than :data:`CROSSING_M`), and how many of those pairs are equivalent
-  parts (the network hedges between parts it cannot tell apart);
+  after it (a pair overlapping by more than :data:`CROSSING_M`), how many of those pairs are equivalent parts
+  (the network hedges between parts it cannot tell apart), and the Part Accuracy of those views and of the others;
 - the up-axis error (degrees between the predicted and the true up direction, camera frame), the CPU time of
   inference per object (normalising the parts, the network, up and frames; not rendering or repair) and the
   process's peak resident memory.
@@ -137,9 +137,10 @@ class Accumulator:
                 key: _stats(np.array([o.penetration_m[key] for o in self.outcomes if o.penetration_m]))
                 for key in ("before", "after")}
             repaired = [o for o in self.outcomes if o.after is not None]
-            crossing = [o for o in repaired if o.deepest_overlap_after is not None
-                        and o.deepest_overlap_after["depth_m"] > CROSSING_M]
-            other = [o for o in repaired if o not in crossing]
+            crosses = [o.deepest_overlap_after is not None and o.deepest_overlap_after["depth_m"] > CROSSING_M
+                       for o in repaired]
+            crossing = [o for o, c in zip(repaired, crosses) if c]
+            other = [o for o, c in zip(repaired, crosses) if not c]
 
             def mean_part_accuracy(views):  # over views, before repair (nan for none)
                 return float(np.mean([np.mean(o.before.correct) for o in views])) if views else float("nan")
