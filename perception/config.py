@@ -91,10 +91,13 @@ class LossConfig:
     # near-uniform masks gives almost none. Measured on the compact model (benchmarks/RESULTS.md): weight 1 gave a
     # lower validation soft IoU after 300 steps from scratch (0.036 against 0.059), so the bundled configs keep 0.
     mask_cross_entropy: float = 0.0
+    # Beyond the paper: weight of the crossing penalty (perception.losses.crossing_penalty), how far the predicted
+    # poses push points of one part through another part's box to its wrong side (0: the paper's loss)
+    crossing: float = 0.0
 
     def __post_init__(self):
         for name in ("translation", "rotation_chamfer", "rotation_l2", "shape_chamfer", "iou_smooth",
-                     "mask_cross_entropy"):
+                     "mask_cross_entropy", "crossing"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"loss.{name} must be >= 0, got {getattr(self, name)}")
         for name in ("points", "shape_points", "match_points"):

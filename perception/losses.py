@@ -8,6 +8,10 @@ cross-entropy on the same matching, beyond the paper: ``loss.mask_cross_entropy`
     1 x rotated-point L2    mean squared distance between corresponding points under the two rotations
     1 x whole-shape chamfer chamfer between all parts posed by the prediction and by the truth
 
+Beyond the paper, ``loss.crossing`` (0 in the paper's configs) weighs :func:`crossing_penalty`: how far points of
+one part are pushed through another part's box to its wrong side, which the four terms above do not single out
+(two parts each a few centimetres off can pass through each other at a small cost in every term).
+
 Prediction i is compared with the ground-truth part it is matched to, using part i's own cloud under both
 poses. The matching cost of a candidate pair is the sum of the first three (weighted) terms for that pair, on a
 subset of points. Per-part terms are averaged over the valid parts of the batch, the shape term over objects.
@@ -20,7 +24,7 @@ import torch.nn.functional as F
 
 from perception.config import LossConfig
 from perception.matching import batch_match, gather_parts
-from perception.model.geometry import chamfer, masked_chamfer, pose_points, rotate
+from perception.model.geometry import chamfer, masked_chamfer, pose_points, quat_to_matrix, rotate
 from perception.model.padding import pack
 
 # ---------------------------------------------------------------------------------------------- segmentation
@@ -144,8 +148,59 @@ def pose_losses(quat: torch.Tensor, trans: torch.Tensor, batch: dict, config: Lo
 
     loss = (config.translation * translation + config.rotation_chamfer * rotation_chamfer
             + config.rotation_l2 * rotation_l2 + config.shape_chamfer * shape_chamfer)
-    return {"loss": loss, "translation": translation, "rotation_chamfer": rotation_chamfer,
-            "rotation_l2": rotation_l2, "shape_chamfer": shape_chamfer, "perm": perm}
+    terms = {"loss": loss, "translation": translation, "rotation_chamfer": rotation_chamfer,
+             "rotation_l2": rotation_l2, "shape_chamfer": shape_chamfer, "perm": perm}
+    if config.crossing:
+        crossing = crossing_penalty(shape_pts, quat, trans, gt_quat, gt_trans, valid,
+                                    points[:, :, : config.points])
+        terms["loss"] = loss + config.crossing * crossing
+        terms["crossing"] = crossing
+    return terms
+
+
+def crossing_penalty(points: torch.Tensor, quat: torch.Tensor, trans: torch.Tensor, gt_quat: torch.Tensor,
+                     gt_trans: torch.Tensor, valid: torch.Tensor, box_points: torch.Tensor) -> torch.Tensor:
+    """How far the predicted poses push parts through each other, in normalised shape units (scalar >= 0).
+
+    Each part j's box is the axis-aligned box of ``box_points`` (B, P, M, 3) in its own (PCA) frame, and its
+    thinnest axis n is its *normal*: for a panel, the axis one crosses it along. A point of part i that the true
+    poses put outside j's slab (|n coordinate| >= half thickness) has a true side of j. Where the predicted poses
+    put that point within j's footprint (in the box along the two other axes, edges included), the penalty is how
+    far the point would have to move along n to reach j's face on its true side (0 when it is already there). The
+    penalty of a pair is the mean over part i's ``points`` (B, P, N, 3); the result sums over j and averages over
+    the valid parts i. ``gt_quat``/``gt_trans``: the true poses matched to each prediction.
+    """
+    lo, hi = box_points.amin(dim=2), box_points.amax(dim=2)  # (B, P, 3) in each part's own frame
+    half, centre = (hi - lo) / 2, (hi + lo) / 2
+    b, p = valid.shape
+    normal = half.argmin(dim=-1)  # (B, P)
+    axes = torch.arange(3, device=points.device)
+    in_plane = axes.view(1, 1, 3) != normal.unsqueeze(-1)  # (B, P, 3)
+
+    def in_box_frames(q: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """(B, I, J, N, 3): part i's points posed by (q, t), in part j's box frame (relative to its centre)."""
+        world = pose_points(points, q, t)  # (B, I, N, 3)
+        rot_j = quat_to_matrix(q)  # (B, J, 3, 3); local = R_j^T (x - t_j)
+        rel = world.unsqueeze(2) - t.view(b, 1, p, 1, 3)  # (B, I, J, N, 3)
+        local = torch.einsum("bijnk,bjkl->bijnl", rel, rot_j)
+        return local - centre.view(b, 1, p, 1, 3)
+
+    with torch.no_grad():
+        true_local = in_box_frames(gt_quat, gt_trans)
+        half_j = half.view(b, 1, p, 1, 3)
+        true_n = torch.gather(true_local, -1, normal.view(b, 1, p, 1, 1).expand(*true_local.shape[:-1], 1))
+        half_n = torch.gather(half_j.expand_as(true_local), -1,
+                              normal.view(b, 1, p, 1, 1).expand(*true_local.shape[:-1], 1)).squeeze(-1)
+        side = torch.sign(true_n.squeeze(-1))
+        outside_slab = true_n.squeeze(-1).abs() >= half_n
+    pred_local = in_box_frames(quat, trans)
+    index = normal.view(b, 1, p, 1, 1).expand(*pred_local.shape[:-1], 1)
+    pred_n = torch.gather(pred_local, -1, index).squeeze(-1)
+    within = ((pred_local.detach().abs() <= half.view(b, 1, p, 1, 3)) | ~in_plane.view(b, 1, p, 1, 3)).all(-1)
+    depth = torch.relu(half_n - side * pred_n) * (outside_slab & within)
+    pairs = valid.unsqueeze(2) & valid.unsqueeze(1) & ~torch.eye(p, dtype=torch.bool, device=valid.device)
+    per_part = (depth.mean(-1) * pairs).sum(-1)  # (B, I)
+    return per_part[valid].mean()
 
 
 def model_pose_loss(outputs: dict, batch: dict, config: LossConfig) -> dict:

@@ -51,6 +51,7 @@ def test_defaults():
     ("[model]\nimage_size = 100\n", "model.image_size must be a multiple of 32"),
     ("[model]\nimage_size = '224'\n", "model.image_size must be an integer"),
     ("[loss]\npoints = 5000\n", "loss.points must be in 1..1000"),
+    ("[loss]\ncrossing = -0.5\n", "loss.crossing must be >= 0"),
     ("[train.pose]\nlr = -1.0\n", "train.pose.lr must be > 0"),
     ("[train.segmentation]\nbatch_size = 1\n", "train.segmentation.batch_size must be >= 2"),
     ("[train]\nfreeze_segmentation = 1\n", "train.freeze_segmentation must be true or false"),
