@@ -185,17 +185,17 @@ def crossing_penalty(points: torch.Tensor, quat: torch.Tensor, trans: torch.Tens
         local = torch.einsum("bijnk,bjkl->bijnl", rel, rot_j)
         return local - centre.view(b, 1, p, 1, 3)
 
+    def along_normal(local: torch.Tensor) -> torch.Tensor:
+        """(B, I, J, N): the coordinate along part j's normal of :func:`in_box_frames`' points."""
+        return local.gather(-1, normal.view(b, 1, p, 1, 1).expand(*local.shape[:-1], 1)).squeeze(-1)
+
+    half_n = half.gather(-1, normal.unsqueeze(-1)).view(b, 1, p, 1)  # part j's half thickness
     with torch.no_grad():
-        true_local = in_box_frames(gt_quat, gt_trans)
-        half_j = half.view(b, 1, p, 1, 3)
-        true_n = torch.gather(true_local, -1, normal.view(b, 1, p, 1, 1).expand(*true_local.shape[:-1], 1))
-        half_n = torch.gather(half_j.expand_as(true_local), -1,
-                              normal.view(b, 1, p, 1, 1).expand(*true_local.shape[:-1], 1)).squeeze(-1)
-        side = torch.sign(true_n.squeeze(-1))
-        outside_slab = true_n.squeeze(-1).abs() >= half_n
+        true_n = along_normal(in_box_frames(gt_quat, gt_trans))
+        side = torch.sign(true_n)
+        outside_slab = true_n.abs() >= half_n
     pred_local = in_box_frames(quat, trans)
-    index = normal.view(b, 1, p, 1, 1).expand(*pred_local.shape[:-1], 1)
-    pred_n = torch.gather(pred_local, -1, index).squeeze(-1)
+    pred_n = along_normal(pred_local)
     within = ((pred_local.detach().abs() <= half.view(b, 1, p, 1, 3)) | ~in_plane.view(b, 1, p, 1, 3)).all(-1)
     depth = torch.relu(half_n - side * pred_n) * (outside_slab & within)
     pairs = valid.unsqueeze(2) & valid.unsqueeze(1) & ~torch.eye(p, dtype=torch.bool, device=valid.device)
