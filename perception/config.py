@@ -94,6 +94,9 @@ class LossConfig:
     # Beyond the paper: weight of the crossing penalty (perception.losses.crossing_penalty), how far the predicted
     # poses push points of one part through another part's box to its wrong side (0: the paper's loss)
     crossing: float = 0.0
+    # with the crossing penalty: move only the crossing part (no gradient into the frame of the part it crosses,
+    # so the network cannot turn or shift that part to escape the footprint test); False: both parts
+    crossing_moves_crossing_part_only: bool = False
 
     def __post_init__(self):
         for name in ("translation", "rotation_chamfer", "rotation_l2", "shape_chamfer", "iou_smooth",

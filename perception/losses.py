@@ -152,14 +152,15 @@ def pose_losses(quat: torch.Tensor, trans: torch.Tensor, batch: dict, config: Lo
              "rotation_l2": rotation_l2, "shape_chamfer": shape_chamfer, "perm": perm}
     if config.crossing:
         crossing = crossing_penalty(shape_pts, quat, trans, gt_quat, gt_trans, valid,
-                                    points[:, :, : config.points])
+                                    points[:, :, : config.points], config.crossing_moves_crossing_part_only)
         terms["loss"] = loss + config.crossing * crossing
         terms["crossing"] = crossing
     return terms
 
 
 def crossing_penalty(points: torch.Tensor, quat: torch.Tensor, trans: torch.Tensor, gt_quat: torch.Tensor,
-                     gt_trans: torch.Tensor, valid: torch.Tensor, box_points: torch.Tensor) -> torch.Tensor:
+                     gt_trans: torch.Tensor, valid: torch.Tensor, box_points: torch.Tensor,
+                     move_crossing_part_only: bool = False) -> torch.Tensor:
     """How far the predicted poses push parts through each other, in normalised shape units (scalar >= 0).
 
     Each part j's box is the axis-aligned box of ``box_points`` (B, P, M, 3) in its own (PCA) frame, and its
@@ -169,6 +170,7 @@ def crossing_penalty(points: torch.Tensor, quat: torch.Tensor, trans: torch.Tens
     far the point would have to move along n to reach j's face on its true side (0 when it is already there). The
     penalty of a pair is the mean over part i's ``points`` (B, P, N, 3); the result sums over j and averages over
     the valid parts i. ``gt_quat``/``gt_trans``: the true poses matched to each prediction.
+    ``move_crossing_part_only``: the gradient reaches part i's pose only, not the frame of the part j it crosses.
     """
     lo, hi = box_points.amin(dim=2), box_points.amax(dim=2)  # (B, P, 3) in each part's own frame
     half, centre = (hi - lo) / 2, (hi + lo) / 2
@@ -177,11 +179,13 @@ def crossing_penalty(points: torch.Tensor, quat: torch.Tensor, trans: torch.Tens
     axes = torch.arange(3, device=points.device)
     in_plane = axes.view(1, 1, 3) != normal.unsqueeze(-1)  # (B, P, 3)
 
-    def in_box_frames(q: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        """(B, I, J, N, 3): part i's points posed by (q, t), in part j's box frame (relative to its centre)."""
+    def in_box_frames(q: torch.Tensor, t: torch.Tensor, fixed_frames: bool = False) -> torch.Tensor:
+        """(B, I, J, N, 3): part i's points posed by (q, t), in part j's box frame (relative to its centre);
+        ``fixed_frames``: no gradient through part j's frame."""
         world = pose_points(points, q, t)  # (B, I, N, 3)
-        rot_j = quat_to_matrix(q)  # (B, J, 3, 3); local = R_j^T (x - t_j)
-        rel = world.unsqueeze(2) - t.view(b, 1, p, 1, 3)  # (B, I, J, N, 3)
+        q_j, t_j = (q.detach(), t.detach()) if fixed_frames else (q, t)
+        rot_j = quat_to_matrix(q_j)  # (B, J, 3, 3); local = R_j^T (x - t_j)
+        rel = world.unsqueeze(2) - t_j.view(b, 1, p, 1, 3)  # (B, I, J, N, 3)
         local = torch.einsum("bijnk,bjkl->bijnl", rel, rot_j)
         return local - centre.view(b, 1, p, 1, 3)
 
@@ -194,7 +198,7 @@ def crossing_penalty(points: torch.Tensor, quat: torch.Tensor, trans: torch.Tens
         true_n = along_normal(in_box_frames(gt_quat, gt_trans))
         side = torch.sign(true_n)
         outside_slab = true_n.abs() >= half_n
-    pred_local = in_box_frames(quat, trans)
+    pred_local = in_box_frames(quat, trans, move_crossing_part_only)
     pred_n = along_normal(pred_local)
     within = ((pred_local.detach().abs() <= half.view(b, 1, p, 1, 3)) | ~in_plane.view(b, 1, p, 1, 3)).all(-1)
     depth = torch.relu(half_n - side * pred_n) * (outside_slab & within)

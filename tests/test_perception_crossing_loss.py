@@ -72,6 +72,26 @@ def test_the_gradient_pushes_the_panels_back_apart():
     assert float(trans.grad[0, :, :2].abs().max()) == 0.0  # and does not slide them sideways
 
 
+def test_moving_the_crossing_part_only_keeps_the_crossed_frame_still():
+    """Two identical panels put through each other: moving the crossing part only leaves the value as it is,
+    and each panel's translation gradient is then its own crossing's alone, half of the two-sided one (where
+    each panel also receives the push of the other's crossing through its frame)."""
+    points = panels()
+    identity = torch.tensor([[[1.0, 0, 0, 0]] * 2])
+    truth = torch.tensor([[[0.0, 0, 0], [0, 0, GAP]]])
+    valid = torch.ones(1, 2, dtype=torch.bool)
+    grads = []
+    for one_sided in (False, True):
+        trans = torch.tensor([[[0.0, 0, 0], [0, 0, -GAP]]], requires_grad=True)
+        value = crossing_penalty(points, identity, trans, identity, truth, valid, points, one_sided)
+        value.backward()
+        grads.append((float(value.detach()), trans.grad.clone()))
+    (both_value, both), (one_value, one) = grads
+    assert one_value == pytest.approx(both_value)
+    assert one[0, 1, 2] < 0 < one[0, 0, 2]
+    assert torch.allclose(one, both / 2)
+
+
 def test_pose_losses_add_the_penalty_only_when_weighted():
     config = load_config("tiny").loss
     assert config.crossing == 0.0  # the paper's loss by default
