@@ -28,10 +28,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.optimize import linear_sum_assignment
 
 from perception.data import ViewDataset, collate, object_files, permute_parts
 from perception.evaluate import load_model
+from perception.matching import match_within_classes
 from perception.metrics import MetricSummary, _subsample_chamfer, evaluate_batch, pose_clouds
 
 CLOUD_POINTS = 64  # points per part (the first of the farthest-point order) in the matching and medoid distances
@@ -61,14 +61,8 @@ def match_to_first(points: np.ndarray, classes: np.ndarray, runs: list[tuple]) -
     first = pose_clouds(points, *runs[0])
     quats, transs = [runs[0][0]], [runs[0][1]]
     for quat, trans in runs[1:]:
-        clouds = pose_clouds(points, quat, trans)
-        perm = np.arange(len(points))
-        for c in np.unique(classes):
-            members = np.flatnonzero(classes == c)
-            if len(members) > 1:
-                cost = _subsample_chamfer(first[members][:, None], clouds[members][None, :])
-                rows, cols = linear_sum_assignment(cost)
-                perm[members[rows]] = members[cols]
+        cost = _subsample_chamfer(first[:, None], pose_clouds(points, quat, trans)[None, :])  # (n, n)
+        perm = match_within_classes(cost, classes)
         quats.append(quat[perm])
         transs.append(trans[perm])
     return np.stack(quats), np.stack(transs)
