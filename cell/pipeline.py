@@ -33,14 +33,14 @@ def crossing_note(overlapping_pairs: tuple[tuple[str, str, float], ...], max_ove
                   max_translation_m: float) -> str:
     """One line for the console when repaired targets still overlap by more than ``max_overlap_m`` (metres): the
     deepest pair and how many more; "" when none does. Such parts cross (a panel through a panel): the repair
-    moves no part more than ``max_translation_m``, and the cell builds the targets as they are."""
+    moves no crossed part more than ``max_translation_m``, and the cell builds the targets as they are."""
     deep = [pair for pair in overlapping_pairs if pair[2] > max_overlap_m]
     if not deep:
         return ""
     a, b, depth = deep[0]
     more = f" (and {len(deep) - 1} more pair(s) by over {max_overlap_m * 1000:.0f} mm)" if len(deep) > 1 else ""
     return (f"after repair {a!r} and {b!r} still overlap by {depth * 1000:.0f} mm{more}: the prediction crosses "
-            f"them, more than a repair bounded to {max_translation_m * 1000:.0f} mm per part can undo")
+            f"them, more than a repair bounded to {max_translation_m * 1000:.0f} mm per crossed part can undo")
 
 
 class Pipeline:
@@ -140,8 +140,15 @@ class Pipeline:
                                  "deepest_penetration_before_m": repair.deepest_penetration_before_m,
                                  "deepest_penetration_after_m": repair.deepest_penetration_after_m,
                                  "overlapping_pairs_after": [{"parts": [a, b], "depth_m": depth}
-                                                             for a, b, depth in repair.overlapping_pairs_after]}
-        crossing = crossing_note(repair.overlapping_pairs_after, MAX_GIVEN_OVERLAP_M, settings.max_translation_m)
+                                                             for a, b, depth in repair.overlapping_pairs_after],
+                                 "crossed_parts": list(repair.crossed_parts),
+                                 "max_translation_m": settings.max_translation_m,
+                                 "crossing_translation_m": settings.crossing_translation_m}
+        if repair.crossed_parts:
+            self.console.say(f"    crossed parts moved up to {settings.crossing_translation_m * 1000:.0f} mm to part "
+                             f"them: {', '.join(repair.crossed_parts)}")
+        crossing = crossing_note(repair.overlapping_pairs_after, MAX_GIVEN_OVERLAP_M,
+                                 max(settings.max_translation_m, settings.crossing_translation_m))
         if crossing:
             self.console.say(f"    {crossing}")
         return assembly_with_poses(assembly, dict(zip(assembly.part_names, poses)))

@@ -15,9 +15,16 @@ failure). The repair, all in the assembly frame (metres, +z up, floor at z = 0):
    contact with the nearest part within ``connect_distance_m``; then the contact rounds run again. The rounds
    may part a joined part again (its neighbours move with their other contacts), so this step repeats, at most
    ``connect_passes`` times.
-4. **Bound**: a part's total displacement is clamped to ``max_translation_m`` and its rotation to
-   ``max_rotation_deg``; the report says how far each part moved, and which pairs still overlap: parts the
-   prediction crossed (a panel through a panel) overlap by more than the bound can undo, and stay so.
+4. **Bound**: a part's total displacement is clamped to ``max_translation_m`` (``crossing_translation_m`` for the
+   parts of step 5) and its rotation to ``max_rotation_deg``.
+5. **Uncross**: a pair the prediction crossed (a panel through a panel, most often in cabinets) overlaps by more
+   than the bound can undo, and no cell can build that. The parts of every pair still overlapping by more than
+   ``crossing_depth_m`` (the most ``python -m cell.run`` accepts) get the wider bound ``crossing_translation_m``,
+   the other parts keep theirs, and steps 2-3 run again; at most ``crossing_passes`` times (never when
+   ``crossing_translation_m`` is no wider than ``max_translation_m``). Only crossed parts may move further, so
+   assemblies without a crossing come out as before.
+
+The report says how far each part moved, and which pairs still overlap.
 """
 
 from __future__ import annotations
@@ -41,19 +48,23 @@ class RepairSettings:
     iterations: int = 40
     connect_distance_m: float = 0.05  # an isolated part joins its nearest part within this (0: never)
     connect_passes: int = 3  # join, then contact rounds, at most this many times
+    crossing_translation_m: float = 0.12  # bound for the parts of crossed pairs (<= max_translation_m: no step 5)
+    crossing_depth_m: float = 0.03  # a pair overlapping by more than this after step 4 counts as crossed
+    crossing_passes: int = 2  # widen the bound for newly crossed pairs, then contact rounds, at most this often
 
 
 @dataclass(frozen=True)
 class RepairReport:
     """How far each part moved (metres, degrees), the deepest penetration before and after (metres), and the
     pairs that still overlap by more than ``penetration_tolerance_m`` after: (name a, name b, depth in metres),
-    deepest first."""
+    deepest first; the parts given the wider bound of a crossed pair (step 5), in part order."""
 
     translation_m: dict[str, float]
     rotation_deg: dict[str, float]
     deepest_penetration_before_m: float
     deepest_penetration_after_m: float
     overlapping_pairs_after: tuple[tuple[str, str, float], ...] = ()
+    crossed_parts: tuple[str, ...] = ()
 
 
 def snap_rotation_to_axes(rotation: np.ndarray, tolerance_deg: float) -> np.ndarray:
@@ -75,14 +86,14 @@ def _centre(part: ConvexPart) -> np.ndarray:
     return 0.5 * (part.vertices.min(axis=0) + part.vertices.max(axis=0))
 
 
-def _clamped(part: ConvexPart, original: Pose, candidate: Pose, settings: RepairSettings) -> Pose:
-    """``candidate`` with its centre moved back towards ``original``'s to within the translation bound."""
+def _clamped(part: ConvexPart, original: Pose, candidate: Pose, bound_m: float) -> Pose:
+    """``candidate`` with its centre moved back towards ``original``'s to within ``bound_m`` (metres)."""
     centre = _centre(part)
     offset = candidate.apply(centre) - original.apply(centre)
     norm = float(np.linalg.norm(offset))
-    if norm <= settings.max_translation_m:
+    if norm <= bound_m:
         return candidate
-    target = original.apply(centre) + offset * (settings.max_translation_m / norm)
+    target = original.apply(centre) + offset * (bound_m / norm)
     return Pose(target - candidate.rotation @ centre, candidate.quat_wxyz)
 
 
@@ -91,8 +102,9 @@ def _deepest_penetration(parts: list[ConvexPart], poses: list[Pose]) -> float:
 
 
 def _contact_rounds(parts: list[ConvexPart], original: list[Pose], current: list[Pose], settings: RepairSettings,
-                    floor_z_m: float) -> list[Pose]:
-    """Step 2: pairwise corrections along contact normals until nothing moves (at most ``iterations`` rounds)."""
+                    floor_z_m: float, bounds_m: list[float]) -> list[Pose]:
+    """Step 2: pairwise corrections along contact normals until nothing moves (at most ``iterations`` rounds);
+    ``bounds_m``: how far each part may end up from ``original`` (metres)."""
     n = len(parts)
     for _ in range(settings.iterations):
         shifts = np.zeros((n, 3))
@@ -117,13 +129,13 @@ def _contact_rounds(parts: list[ConvexPart], original: list[Pose], current: list
         if not np.any(counts):
             break
         moved = np.where(counts[:, None] > 0, shifts / np.maximum(counts, 1)[:, None], 0.0)
-        current = [_clamped(p, o, Pose(c.position + m, c.quat_wxyz), settings)
-                   for p, o, c, m in zip(parts, original, current, moved)]
+        current = [_clamped(p, o, Pose(c.position + m, c.quat_wxyz), bound)
+                   for p, o, c, m, bound in zip(parts, original, current, moved, bounds_m)]
     return current
 
 
 def _connect_isolated(parts: list[ConvexPart], original: list[Pose], current: list[Pose],
-                      settings: RepairSettings) -> list[Pose]:
+                      settings: RepairSettings, bounds_m: list[float]) -> list[Pose]:
     """Step 3: each part touching no other part, smallest first, moved by translation onto its nearest part when
     that is within ``connect_distance_m`` (and the move within the bound). Returns ``current`` itself when nothing
     moved."""
@@ -147,10 +159,23 @@ def _connect_isolated(parts: list[ConvexPart], original: list[Pose], current: li
             continue
         # normal_ab points from part i to its nearest part: close the gap, i alone
         candidate = Pose(joined[i].position + nearest.distance_m * nearest.normal_ab, joined[i].quat_wxyz)
-        clamped = _clamped(parts[i], original[i], candidate, settings)
+        clamped = _clamped(parts[i], original[i], candidate, bounds_m[i])
         if clamped is candidate:  # a move cut short by the bound would leave the part isolated anyway
             joined[i] = candidate
     return joined if any(a is not b for a, b in zip(joined, current)) else current
+
+
+def _contact_and_connect(parts: list[ConvexPart], original: list[Pose], current: list[Pose],
+                         settings: RepairSettings, floor_z_m: float, bounds_m: list[float]) -> list[Pose]:
+    """Steps 2 and 3: contact rounds, then join isolated parts and run the rounds again, repeated."""
+    current = _contact_rounds(parts, original, current, settings, floor_z_m, bounds_m)
+    for _ in range(settings.connect_passes if settings.connect_distance_m > 0 else 0):
+        # the contact rounds after a join move the joined part's neighbours too and may part it again: join anew
+        joined = _connect_isolated(parts, original, current, settings, bounds_m)
+        if joined is current:
+            break
+        current = _contact_rounds(parts, original, joined, settings, floor_z_m, bounds_m)
+    return current
 
 
 def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSettings = RepairSettings(),
@@ -164,14 +189,19 @@ def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSet
         # rotate about the part's centre so that aligning does not move it
         centre_world = pose.apply(_centre(part))
         current.append(Pose.from_rotation(rotation, centre_world - rotation @ _centre(part)))
-    current = _contact_rounds(parts, original, current, settings, floor_z_m)
-    for _ in range(settings.connect_passes if settings.connect_distance_m > 0 else 0):
-        # the contact rounds after a join move the joined part's neighbours too and may part it again: join anew
-        joined = _connect_isolated(parts, original, current, settings)
-        if joined is current:
-            break
-        current = _contact_rounds(parts, original, joined, settings, floor_z_m)
+    bounds_m = [settings.max_translation_m] * len(parts)
+    current = _contact_and_connect(parts, original, current, settings, floor_z_m, bounds_m)
     overlapping_after = overlapping_pairs(parts, current)
+    index = {part.name: k for k, part in enumerate(parts)}
+    for _ in range(settings.crossing_passes if settings.crossing_translation_m > settings.max_translation_m else 0):
+        crossed = {index[name] for a, b, depth in overlapping_after if depth > settings.crossing_depth_m
+                   for name in (a, b)}
+        if all(bounds_m[k] >= settings.crossing_translation_m for k in crossed):
+            break  # no crossed part left that a wider bound could still move
+        for k in crossed:
+            bounds_m[k] = settings.crossing_translation_m
+        current = _contact_and_connect(parts, original, current, settings, floor_z_m, bounds_m)
+        overlapping_after = overlapping_pairs(parts, current)
     report = RepairReport(
         translation_m={p.name: float(np.linalg.norm(c.apply(_centre(p)) - o.apply(_centre(p))))
                        for p, o, c in zip(parts, original, current)},
@@ -180,5 +210,6 @@ def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSet
         deepest_penetration_before_m=before,
         deepest_penetration_after_m=overlapping_after[0][2] if overlapping_after else 0.0,
         overlapping_pairs_after=tuple(pair for pair in overlapping_after if pair[2] > settings.penetration_tolerance_m),
+        crossed_parts=tuple(p.name for p, bound in zip(parts, bounds_m) if bound > settings.max_translation_m),
     )
     return current, report

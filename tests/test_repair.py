@@ -38,11 +38,38 @@ def test_repair_restores_contacts_and_removes_penetration(category):
     assert all(depth <= 0.001 for _, _, depth in report.overlapping_pairs_after)
     assert max(report.translation_m.values()) <= settings.max_translation_m + 1e-9
     assert max(report.rotation_deg.values()) <= settings.max_rotation_deg + 1e-6
+    assert report.crossed_parts == ()  # nothing crossed: no part got the wider bound
     # the generator builds along the axes: aligned faces come back exactly
     for pose, true_pose in zip(repaired, truth):
         assert np.degrees(pose.distance(true_pose)[1]) < 1e-6
     # the contacts of the true assembly are there again
     assert edges(contact_graph(parts, truth)) <= edges(contact_graph(parts, repaired))
+
+
+def test_crossed_parts_get_the_wider_bound_and_are_parted():
+    """A cabinet side placed 14 cm inward runs through the shelves deeper than the 50 mm bound undoes; step 5
+    gives the crossed parts the wider bound and parts them, and moves no other part further than before."""
+    assembly = read_assembly(sample_folder("cabinet"))
+    parts = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
+    poses = [p.assembly_from_part for p in assembly.parts]
+    side = assembly.part_names.index("side_left")
+    poses[side] = Pose(poses[side].position + [0.14, 0.0, 0.0], poses[side].quat_wxyz)
+    settings = RepairSettings()
+    assert settings.crossing_translation_m > settings.max_translation_m
+
+    bounded_only, report = repair_poses(parts, poses, RepairSettings(crossing_translation_m=settings.max_translation_m))
+    assert report.overlapping_pairs_after[0][2] > settings.crossing_depth_m  # still crossed: no cell builds this
+    assert report.crossed_parts == ()
+
+    repaired, report = repair_poses(parts, poses, settings)
+    assert "side_left" in report.crossed_parts
+    assert all(depth <= settings.crossing_depth_m for _, _, depth in report.overlapping_pairs_after)
+    assert report.translation_m["side_left"] > settings.max_translation_m + 0.01  # it needed the wider bound
+    for name, moved_m in report.translation_m.items():
+        bound = settings.crossing_translation_m if name in report.crossed_parts else settings.max_translation_m
+        assert moved_m <= bound + 1e-9, name
+    # the side went back out towards its place
+    assert repaired[side].position[0] < bounded_only[side].position[0] - 0.01
 
 
 def test_moves_are_bounded():
@@ -59,22 +86,24 @@ def test_moves_are_bounded():
 
 
 def test_crossed_panels_stay_crossed_and_are_reported():
-    """Two panels through each other (a cross, 150 mm deep) need more than the bound to part: the repair moves
-    each by at most the bound and reports the pair, deepest first."""
+    """Two panels through each other (a cross, 300 mm deep) need more than even the crossed parts' wider bound to
+    part: the repair moves each by at most that bound and reports the pair, deepest first."""
     import trimesh
 
-    panel = trimesh.creation.box([0.3, 0.015, 0.4])
+    panel = trimesh.creation.box([0.6, 0.015, 0.4])
     parts = [ConvexPart.from_mesh("front", panel), ConvexPart.from_mesh("side", panel),
              ConvexPart.from_mesh("shelf", trimesh.creation.box([0.1, 0.1, 0.01]))]
     quarter_turn_z = Rotation.from_euler("z", 90, degrees=True).as_matrix()
     poses = [Pose([0.0, 0.0, 0.2], [1.0, 0.0, 0.0, 0.0]), Pose.from_rotation(quarter_turn_z, [0.0, 0.0, 0.2]),
-             Pose([0.5, 0.0, 0.005], [1.0, 0.0, 0.0, 0.0])]
+             Pose([0.8, 0.0, 0.005], [1.0, 0.0, 0.0, 0.0])]
     settings = RepairSettings(connect_distance_m=0.0)
     _, report = repair_poses(parts, poses, settings)
-    assert max(report.translation_m.values()) == pytest.approx(settings.max_translation_m, abs=1e-6)
+    assert report.crossed_parts == ("front", "side")
+    assert max(report.translation_m.values()) == pytest.approx(settings.crossing_translation_m, abs=1e-6)
+    assert report.translation_m["shelf"] == 0.0
     (a, b, depth), = report.overlapping_pairs_after  # the shelf apart on the floor overlaps nothing
     assert {a, b} == {"front", "side"}
-    assert depth > 0.15 - 2 * settings.max_translation_m - 1e-3 and depth == report.deepest_penetration_after_m
+    assert depth > 0.3 - 2 * settings.crossing_translation_m - 1e-3 and depth == report.deepest_penetration_after_m
 
 
 def test_snap_rotation():
