@@ -145,8 +145,9 @@ class Pipeline:
                                  "max_translation_m": settings.max_translation_m,
                                  "crossing_translation_m": settings.crossing_translation_m}
         if repair.crossed_parts:
-            self.console.say(f"    crossed parts moved up to {settings.crossing_translation_m * 1000:.0f} mm to part "
-                             f"them: {', '.join(repair.crossed_parts)}")
+            self.console.say(f"    parts crossing another by over {settings.crossing_depth_m * 1000:.0f} mm, allowed "
+                             f"to move up to {settings.crossing_translation_m * 1000:.0f} mm (the others "
+                             f"{settings.max_translation_m * 1000:.0f} mm): {', '.join(repair.crossed_parts)}")
         crossing = crossing_note(repair.overlapping_pairs_after, MAX_GIVEN_OVERLAP_M,
                                  max(settings.max_translation_m, settings.crossing_translation_m))
         if crossing:
