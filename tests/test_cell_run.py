@@ -245,6 +245,11 @@ def test_full_run_from_the_picture(small_chair, tiny_checkpoint, tmp_path, capsy
     overlaps = report["repair"]["overlapping_pairs_after"]
     names = {part["name"] for part in report["parts"]}
     assert all(set(o["parts"]) <= names and o["depth_m"] > 0 for o in overlaps)
+    assert set(report["repair"]["crossed_parts"]) <= names
+    for part in report["parts"]:  # each within its bound: the wider one for the parts of a crossed pair
+        bound = report["repair"]["crossing_translation_m" if part["name"] in report["repair"]["crossed_parts"]
+                                 else "max_translation_m"]
+        assert part["repair"]["translation_m"] <= bound + 1e-9
     for part in report["parts"]:
         for key in ("predicted_camera_from_part", "predicted_assembly_from_part", "target_assembly_from_part"):
             assert np.isfinite(part[key]["position"]).all()
