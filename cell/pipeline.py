@@ -29,18 +29,19 @@ ANIMATION_FRAME_S = 0.4  # simulated seconds between the frames of animation.gif
 ANIMATION_FPS = 10.0  # its playback: 4x the simulated speed
 
 
-def crossing_note(overlapping_pairs: tuple[tuple[str, str, float], ...], max_overlap_m: float,
-                  max_translation_m: float) -> str:
-    """One line for the console when repaired targets still overlap by more than ``max_overlap_m`` (metres): the
-    deepest pair and how many more; "" when none does. Such parts cross (a panel through a panel): the repair
-    moves no crossed part more than ``max_translation_m``, and the cell builds the targets as they are."""
+def crossing_failure(overlapping_pairs: tuple[tuple[str, str, float], ...], max_overlap_m: float,
+                     max_translation_m: float) -> str:
+    """Why the repaired targets cannot be built, when two parts still overlap by more than ``max_overlap_m``
+    (metres): the deepest such pair and how many more; "" when none does. Such parts cross (a panel through a
+    panel), which no cell builds; the repair moved no crossed part more than ``max_translation_m``."""
     deep = [pair for pair in overlapping_pairs if pair[2] > max_overlap_m]
     if not deep:
         return ""
     a, b, depth = deep[0]
     more = f" (and {len(deep) - 1} more pair(s) by over {max_overlap_m * 1000:.0f} mm)" if len(deep) > 1 else ""
-    return (f"after repair {a!r} and {b!r} still overlap by {depth * 1000:.0f} mm{more}: the prediction crosses "
-            f"them, more than a repair bounded to {max_translation_m * 1000:.0f} mm per crossed part can undo")
+    return (f"after repair {a!r} and {b!r} still overlap by {depth * 1000:.0f} mm{more}: the prediction puts them "
+            f"through each other, deeper than the repair (at most {max_translation_m * 1000:.0f} mm per crossed part) "
+            f"can undo, and no cell builds parts through each other")
 
 
 class Pipeline:
@@ -65,17 +66,27 @@ class Pipeline:
         else:
             with self.console.stage("perception", "poses from the image"):
                 poses = self._predict()
+        self.set_targets(poses)
+
+    def set_targets(self, poses: dict[str, Pose]) -> None:
+        """The target assembly from every part's pose (assembly frame, metres): given poses checked for overlaps,
+        predicted ones repaired. Raises :class:`BadInput` for given poses that overlap, a target out of reach or a
+        part too heavy; :class:`StageFailed` (exit 3, stage "repair") for repaired targets that still cross, with
+        ``self.target`` set to them so that ``overview.png`` shows them."""
         assembly = Assembly(self.parts.files[0].parent.parent.name or "object",
                             [AssemblyPart(n, m, poses[n], f"parts/{f.name}")
                              for n, m, f in zip(self.parts.names, self.parts.meshes, self.parts.files)])
         if self.given is not None:
             self._check_given_overlaps(assembly)
         with self.console.stage("repair", "contacts, interpenetration, alignment"):
-            assembly = self._repair(assembly)
+            assembly, crossed = self._repair(assembly)
         for part in assembly.parts:
             self.entries[part.name]["target_assembly_from_part"] = pose_json(part.assembly_from_part)
             self.entries[part.name]["target_world_from_part"] = pose_json(
                 self.scene.fixture.world_from_assembly @ part.assembly_from_part)
+        if crossed is not None:
+            self.target = assembly
+            raise StageFailed(EXIT_PLANNING, "repair", *crossed)
         from cell.plan import out_of_reach, too_heavy
         from planning.payload import DEFAULT_DENSITY_KG_M3
 
@@ -123,13 +134,14 @@ class Pipeline:
                            "a model's slack accounts for; check their poses (one part placed at another's position, "
                            "or a wrong unit)")
 
-    def _repair(self, assembly: Assembly) -> Assembly:
+    def _repair(self, assembly: Assembly) -> tuple[Assembly, tuple[str, str] | None]:
+        """The repaired assembly, and (message, part) when two of its parts still cross (``None`` otherwise)."""
         from planning.collision import ConvexPart
         from planning.repair import RepairSettings, repair_poses
 
         if self.given is not None and not REPAIR_GIVEN_POSES:
             self.report["repair"] = {"applied": False, "reason": "poses given"}
-            return assembly
+            return assembly, None
         convex = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
         settings = RepairSettings()
         poses, repair = repair_poses(convex, [p.assembly_from_part for p in assembly.parts], settings)
@@ -148,11 +160,11 @@ class Pipeline:
             self.console.say(f"    parts crossing another by over {settings.crossing_depth_m * 1000:.0f} mm, allowed "
                              f"to move up to {settings.crossing_translation_m * 1000:.0f} mm (the others "
                              f"{settings.max_translation_m * 1000:.0f} mm): {', '.join(repair.crossed_parts)}")
-        crossing = crossing_note(repair.overlapping_pairs_after, MAX_GIVEN_OVERLAP_M,
-                                 max(settings.max_translation_m, settings.crossing_translation_m))
-        if crossing:
-            self.console.say(f"    {crossing}")
-        return assembly_with_poses(assembly, dict(zip(assembly.part_names, poses)))
+        message = crossing_failure(repair.overlapping_pairs_after, MAX_GIVEN_OVERLAP_M,
+                                   max(settings.max_translation_m, settings.crossing_translation_m))
+        crossed = (message, next(a for a, _, depth in repair.overlapping_pairs_after
+                                 if depth > MAX_GIVEN_OVERLAP_M)) if message else None
+        return assembly_with_poses(assembly, dict(zip(assembly.part_names, poses))), crossed
 
     # --- 3-7: sequence, kitting, motion, timing, simulation ---------------------------------------------------
     def _record_sequence(self, sequence) -> None:

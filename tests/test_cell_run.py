@@ -14,6 +14,7 @@ import pytest
 import trimesh
 from PIL import Image
 
+from cell.pipeline import MAX_GIVEN_OVERLAP_M
 from cell.run import main
 from perception.synth import generate
 from planning.assembly import write_assembly
@@ -254,8 +255,10 @@ def test_full_run_from_the_picture(small_chair, tiny_checkpoint, tmp_path, capsy
         for key in ("predicted_camera_from_part", "predicted_assembly_from_part", "target_assembly_from_part"):
             assert np.isfinite(part[key]["position"]).all()
             assert abs(np.linalg.norm(part[key]["quat_wxyz"]) - 1.0) < 1e-6
+    if any(o["depth_m"] > MAX_GIVEN_OVERLAP_M for o in overlaps):  # still crossing: refused at the repair
+        assert code == 3 and report["failure"]["stage"] == "repair"
     if code == 3:
-        assert report["failure"]["stage"] in ("sequence", "kitting", "motion", "timing")
+        assert report["failure"]["stage"] in ("repair", "sequence", "kitting", "motion", "timing")
         assert not (out / "trajectory.csv").exists()
     # success or failure, a run from the picture points at the prediction and at --poses
     assert "targets came from the picture" in capsys.readouterr().err
@@ -263,14 +266,59 @@ def test_full_run_from_the_picture(small_chair, tiny_checkpoint, tmp_path, capsy
     assert width == (2 if code == 3 else 3) * height
 
 
-def test_crossing_note_names_the_deepest_pair_over_the_limit():
-    from cell.pipeline import crossing_note
+def test_crossing_failure_names_the_deepest_pair_over_the_limit():
+    from cell.pipeline import crossing_failure
 
     pairs = (("side_left", "back", 0.092), ("top", "door", 0.041), ("shelf", "back", 0.002))
-    note = crossing_note(pairs, max_overlap_m=0.03, max_translation_m=0.05)
-    assert "'side_left' and 'back' still overlap by 92 mm (and 1 more pair(s) by over 30 mm)" in note
-    assert "bounded to 50 mm" in note
-    assert crossing_note(pairs[2:], max_overlap_m=0.03, max_translation_m=0.05) == ""
+    message = crossing_failure(pairs, max_overlap_m=0.03, max_translation_m=0.05)
+    assert "'side_left' and 'back' still overlap by 92 mm (and 1 more pair(s) by over 30 mm)" in message
+    assert "at most 50 mm per crossed part" in message
+    assert crossing_failure(pairs[2:], max_overlap_m=0.03, max_translation_m=0.05) == ""
+
+
+def test_predicted_targets_still_crossing_after_repair_are_refused(tmp_path):
+    """A predicted cabinet with its top stood on edge through the middle (a quarter turn about y): the repair cannot
+    part it from the shelves within its bounds, and the cell refuses to build it (exit 3 at the repair stage, naming
+    the pair), keeping the repaired targets for overview.png, rather than planning a program that puts one panel
+    through another."""
+    import argparse
+
+    from cell.errors import EXIT_PLANNING, StageFailed
+    from cell.inputs import load_parts
+    from cell.pipeline import MAX_GIVEN_OVERLAP_M, Pipeline
+    from cell.run import Console
+    from cell.scene import load_scene
+    from planning.assembly import read_assembly
+    from planning.pose import Pose
+    from scenes import sample_folder
+
+    folder = sample_folder("cabinet")
+    cabinet = read_assembly(folder)
+    truth = {p.name: p.assembly_from_part for p in cabinet.parts}
+    top = truth["top"]
+    top_centre = top.apply(cabinet.part("top").mesh.bounding_box.centroid[None])[0]  # assembly frame, metres
+    cabinet_centre = cabinet.bounds().mean(axis=0)
+    quarter_turn_y = Pose([0.0, 0.0, 0.0], [np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0])
+    predicted = dict(truth, top=Pose(cabinet_centre, [1, 0, 0, 0]) @ quarter_turn_y @ Pose(-top_centre, [1, 0, 0, 0])
+                     @ top)
+    report: dict = {}
+    pipeline = Pipeline(load_scene(), load_parts(folder / "parts"), None, None,
+                        argparse.Namespace(seed=0, checkpoint=None, poses=None), Console(quiet=True), report)
+    with pytest.raises(StageFailed) as failure:
+        pipeline.set_targets(predicted)
+    assert failure.value.exit_code == EXIT_PLANNING and failure.value.stage == "repair"
+    deepest = report["repair"]["overlapping_pairs_after"][0]
+    assert deepest["depth_m"] > MAX_GIVEN_OVERLAP_M
+    assert failure.value.part == deepest["parts"][0]
+    assert f"{deepest['parts'][0]!r} and {deepest['parts'][1]!r} still overlap by" in str(failure.value)
+    assert "top" in report["repair"]["crossed_parts"]
+    assert pipeline.target is not None and pipeline.plan is None  # overview.png shows the crossed targets
+
+    # the true poses, given as a prediction, are repaired and accepted
+    accepted = Pipeline(load_scene(), load_parts(folder / "parts"), None, None,
+                        argparse.Namespace(seed=0, checkpoint=None, poses=None), Console(quiet=True), {})
+    accepted.set_targets(truth)
+    assert accepted.target is not None
 
 
 def test_a_top_slides_down_between_its_sides(tmp_path):
