@@ -157,8 +157,10 @@ class Pipeline:
                                  "max_translation_m": settings.max_translation_m,
                                  "crossing_translation_m": settings.crossing_translation_m}
         if repair.crossed_parts:
-            self.console.say(f"    parts crossing another by over {settings.crossing_depth_m * 1000:.0f} mm, allowed "
-                             f"to move up to {settings.crossing_translation_m * 1000:.0f} mm (the others "
+            turned = "turned onto the assembly axes and " if settings.crossing_align_tolerance_deg >= 180 else ""
+            self.console.say(f"    parts crossing another by over {settings.crossing_depth_m * 1000:.0f} mm, {turned}"
+                             f"allowed to move up to "
+                             f"{settings.crossing_translation_m * 1000:.0f} mm (the others "
                              f"{settings.max_translation_m * 1000:.0f} mm): {', '.join(repair.crossed_parts)}")
         message = crossing_failure(repair.overlapping_pairs_after, MAX_GIVEN_OVERLAP_M,
                                    max(settings.max_translation_m, settings.crossing_translation_m))

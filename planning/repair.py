@@ -16,13 +16,19 @@ failure). The repair, all in the assembly frame (metres, +z up, floor at z = 0):
    may part a joined part again (its neighbours move with their other contacts), so this step repeats, at most
    ``connect_passes`` times.
 4. **Bound**: a part's total displacement is clamped to ``max_translation_m`` (``crossing_translation_m`` for the
-   parts of step 5) and its rotation to ``max_rotation_deg``.
+   parts of step 5) and its rotation to ``max_rotation_deg`` (step 1; step 5 may turn crossed parts further).
 5. **Uncross**: a pair the prediction crossed (a panel through a panel, most often in cabinets) overlaps by more
    than the bound can undo, and no cell can build that. The parts of every pair still overlapping by more than
-   ``crossing_depth_m`` (the most ``python -m cell.run`` accepts) get the wider bound ``crossing_translation_m``,
-   the other parts keep theirs, and steps 2-3 run again; at most ``crossing_passes`` times (never when
-   ``crossing_translation_m`` is no wider than ``max_translation_m``). Only crossed parts may move further, so
-   assemblies without a crossing come out as before.
+   ``crossing_depth_m`` (the most ``python -m cell.run`` accepts) get the wider bound ``crossing_translation_m``
+   and are turned onto the assembly axes when within ``crossing_align_tolerance_deg`` of them (180: always; a
+   panel tilted 20-40 degrees through its neighbours is the usual crossing, and a tilted panel cannot be parted
+   from an upright carcass by moving it), the other parts keep theirs, and steps 2-3 run again; at most
+   ``crossing_passes`` times (never when ``crossing_translation_m`` is no wider than ``max_translation_m``). Only
+   crossed parts may move or turn further, so assemblies without a crossing come out as before.
+
+Aligning (steps 1 and 5) takes each mesh's own axes for the part's: furniture parts are modelled along their own
+axes (every procedural part, and 257 of the 267 parts of ``../shared/furniture`` even sit unrotated in their
+assembly).
 
 The report says how far each part moved, and which pairs still overlap.
 """
@@ -51,6 +57,7 @@ class RepairSettings:
     crossing_translation_m: float = 0.12  # bound for the parts of crossed pairs (<= max_translation_m: no step 5)
     crossing_depth_m: float = 0.03  # a pair overlapping by more than this after step 4 counts as crossed
     crossing_passes: int = 2  # widen the bound for newly crossed pairs, then contact rounds, at most this often
+    crossing_align_tolerance_deg: float = 180.0  # step 5 aligns crossed parts within this (180: always)
 
 
 @dataclass(frozen=True)
@@ -67,23 +74,43 @@ class RepairReport:
     crossed_parts: tuple[str, ...] = ()
 
 
+def _axis_rotations() -> np.ndarray:
+    """The 24 rotations that map the coordinate axes onto the coordinate axes (signed permutations, det +1)."""
+    import itertools
+
+    matrices = []
+    for order in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            matrix = np.zeros((3, 3))
+            matrix[list(order), range(3)] = signs
+            if np.linalg.det(matrix) > 0:
+                matrices.append(matrix)
+    return np.array(matrices)
+
+
+AXIS_ROTATIONS = _axis_rotations()
+
+
 def snap_rotation_to_axes(rotation: np.ndarray, tolerance_deg: float) -> np.ndarray:
-    """The signed permutation matrix nearest to ``rotation`` if within ``tolerance_deg`` of it, else ``rotation``."""
-    snapped = np.zeros((3, 3))
-    for column in range(3):
-        row = int(np.argmax(np.abs(rotation[:, column])))
-        snapped[row, column] = np.sign(rotation[row, column])
-    if not np.allclose(np.abs(snapped).sum(axis=0), 1) or not np.allclose(np.abs(snapped).sum(axis=1), 1):
-        return rotation
-    if np.linalg.det(snapped) < 0:
-        return rotation
-    angle = quat_angle_rad(matrix_to_quat(rotation), matrix_to_quat(snapped))
-    return snapped if np.degrees(angle) <= tolerance_deg else rotation
+    """The nearest of the 24 rotations onto the coordinate axes if within ``tolerance_deg`` of ``rotation``
+    (every rotation is within 62.8 degrees of one), else ``rotation``."""
+    # the angle between R and S grows as trace(R^T S) falls
+    nearest = AXIS_ROTATIONS[int(np.argmax(np.einsum("ij,kij->k", rotation, AXIS_ROTATIONS)))]
+    angle = quat_angle_rad(matrix_to_quat(rotation), matrix_to_quat(nearest))
+    return nearest if np.degrees(angle) <= tolerance_deg else rotation
 
 
 def _centre(part: ConvexPart) -> np.ndarray:
     """Centre of the part's box, part frame: the point whose displacement counts as the part's."""
     return 0.5 * (part.vertices.min(axis=0) + part.vertices.max(axis=0))
+
+
+def _aligned(part: ConvexPart, pose: Pose, tolerance_deg: float) -> Pose:
+    """``pose`` turned onto the assembly axes when within ``tolerance_deg`` of them (:func:`snap_rotation_to_axes`),
+    about the part's centre, so that aligning does not move it."""
+    rotation = snap_rotation_to_axes(pose.rotation, tolerance_deg)
+    centre_world = pose.apply(_centre(part))
+    return Pose.from_rotation(rotation, centre_world - rotation @ _centre(part))
 
 
 def _clamped(part: ConvexPart, original: Pose, candidate: Pose, bound_m: float) -> Pose:
@@ -183,12 +210,8 @@ def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSet
     """Repaired ``assembly_from_part`` poses (same order as ``parts``) and the report."""
     original = list(poses)
     before = _deepest_penetration(parts, original)
-    current = []
-    for part, pose in zip(parts, original):
-        rotation = snap_rotation_to_axes(pose.rotation, min(settings.align_tolerance_deg, settings.max_rotation_deg))
-        # rotate about the part's centre so that aligning does not move it
-        centre_world = pose.apply(_centre(part))
-        current.append(Pose.from_rotation(rotation, centre_world - rotation @ _centre(part)))
+    align_deg = min(settings.align_tolerance_deg, settings.max_rotation_deg)
+    current = [_aligned(part, pose, align_deg) for part, pose in zip(parts, original)]
     bounds_m = [settings.max_translation_m] * len(parts)
     current = _contact_and_connect(parts, original, current, settings, floor_z_m, bounds_m)
     overlapping_after = overlapping_pairs(parts, current)
@@ -200,6 +223,8 @@ def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSet
             break  # no crossed part left that a wider bound could still move
         for k in crossed:
             bounds_m[k] = settings.crossing_translation_m
+            if settings.crossing_align_tolerance_deg > align_deg:
+                current[k] = _aligned(parts[k], current[k], settings.crossing_align_tolerance_deg)
         current = _contact_and_connect(parts, original, current, settings, floor_z_m, bounds_m)
         overlapping_after = overlapping_pairs(parts, current)
     report = RepairReport(

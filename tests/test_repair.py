@@ -72,6 +72,31 @@ def test_crossed_parts_get_the_wider_bound_and_are_parted():
     assert repaired[side].position[0] < bounded_only[side].position[0] - 0.01
 
 
+def test_a_tilted_crossed_part_is_turned_back_onto_the_axes():
+    """A cabinet's bottom tilted 40 degrees and raised 8 cm cuts through the lowest shelf: moving it alone, even by the
+    wider bound, leaves them crossed (40 mm), and turning the crossed parts onto the assembly axes parts them, the
+    bottom back in its true orientation."""
+    assembly = read_assembly(sample_folder("cabinet"))
+    parts = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
+    poses = [p.assembly_from_part for p in assembly.parts]
+    k = assembly.part_names.index("bottom")
+    centre = poses[k].apply(assembly.part("bottom").mesh.bounding_box.centroid[None])[0]
+    tilt = Rotation.from_euler("y", 40, degrees=True).as_matrix()
+    poses[k] = Pose([0.0, 0.0, 0.08], [1, 0, 0, 0]) @ Pose.from_rotation(tilt, centre) @ Pose(-centre, [1, 0, 0, 0]) \
+        @ poses[k]
+    settings = RepairSettings()
+    assert settings.crossing_align_tolerance_deg >= 62.8  # every crossed part is turned onto the axes
+
+    _, untouched = repair_poses(parts, poses, RepairSettings(crossing_align_tolerance_deg=settings.align_tolerance_deg))
+    assert untouched.overlapping_pairs_after[0][2] > settings.crossing_depth_m
+    repaired, report = repair_poses(parts, poses, settings)
+    assert "bottom" in report.crossed_parts
+    assert all(depth <= settings.crossing_depth_m for _, _, depth in report.overlapping_pairs_after)
+    assert report.rotation_deg["bottom"] == pytest.approx(40.0, abs=1e-6)
+    np.testing.assert_allclose(repaired[k].rotation, assembly.part("bottom").assembly_from_part.rotation, atol=1e-9)
+    assert report.translation_m["bottom"] <= settings.crossing_translation_m + 1e-9
+
+
 def test_moves_are_bounded():
     assembly = read_assembly(sample_folder("table"))
     parts = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
@@ -113,6 +138,13 @@ def test_snap_rotation():
     np.testing.assert_allclose(snap_rotation_to_axes(turned, 8.0), [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
     tilted = Rotation.from_rotvec([0, 0.3, 0]).as_matrix()  # 17 degrees: left alone
     np.testing.assert_array_equal(snap_rotation_to_axes(tilted, 8.0), tilted)
+    for rotation in Rotation.random(200, random_state=0).as_matrix():  # with no tolerance, the nearest of the 24
+        snapped = snap_rotation_to_axes(rotation, 180.0)
+        assert set(np.unique(snapped)) <= {-1.0, 0.0, 1.0} and np.linalg.det(snapped) == pytest.approx(1.0)
+        angle = np.degrees(np.arccos(np.clip((np.trace(rotation.T @ snapped) - 1) / 2, -1, 1)))
+        assert angle <= 62.8 + 1e-6
+        assert snap_rotation_to_axes(snapped @ Rotation.from_rotvec([0.0, 0.0, 0.1]).as_matrix(), 8.0) \
+            == pytest.approx(snapped)
 
 
 @pytest.mark.parametrize("gap_m, joins", [(0.02, True), (RepairSettings().connect_distance_m + 0.02, False)])
