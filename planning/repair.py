@@ -35,6 +35,7 @@ The report says how far each part moved, and which pairs still overlap.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,7 +65,7 @@ class RepairSettings:
 class RepairReport:
     """How far each part moved (metres, degrees), the deepest penetration before and after (metres), and the
     pairs that still overlap by more than ``penetration_tolerance_m`` after: (name a, name b, depth in metres),
-    deepest first; the parts given the wider bound of a crossed pair (step 5), in part order."""
+    deepest first; the parts of crossed pairs (step 5: the wider bound, turned onto the axes), in part order."""
 
     translation_m: dict[str, float]
     rotation_deg: dict[str, float]
@@ -76,8 +77,6 @@ class RepairReport:
 
 def _axis_rotations() -> np.ndarray:
     """The 24 rotations that map the coordinate axes onto the coordinate axes (signed permutations, det +1)."""
-    import itertools
-
     matrices = []
     for order in itertools.permutations(range(3)):
         for signs in itertools.product((1.0, -1.0), repeat=3):
