@@ -5,7 +5,7 @@ training (seed 0) nor the held-out test sets (seed 1000) use.
     python benchmarks/repair_tuning.py --count 25 --setting connect_distance_m=0.08 \
         --setting connect_distance_m=0.08,max_translation_m=0.08
 
-Objects: ``--count`` per category (chair, table, cabinet) and level (3, mixed), drawn as
+Objects: ``--count`` per category (chair, table, cabinet, or ``--categories``) and level (3, mixed), drawn as
 ``python -m perception.synth --seed 2000`` draws them, parts in a random order, one view each rendered and
 predicted as ``perception.evaluate --assemblies`` does (bundled weights, up from the picture). The network runs
 once per object; every setting then repairs the same predicted poses. The first row is the default settings; the
@@ -56,9 +56,9 @@ def parse_setting(text: str) -> RepairSettings:
     return RepairSettings(**values)
 
 
-def predicted_objects(count: int, model, max_parts: int):
+def predicted_objects(count: int, model, max_parts: int, categories=CATEGORIES):
     """Yield (label, convex parts, predicted assembly_from_part, scoring context) per object."""
-    for category in CATEGORIES:
+    for category in categories:
         for level in LEVELS:
             for i in range(count):
                 assembly = generate(category, level, np.random.default_rng([TUNING_SEED, i]), f"{category}_{i}")
@@ -90,6 +90,8 @@ def isolated_gaps_m(convex: list[ConvexPart], poses) -> list[float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--count", type=int, default=25, help="objects per category and level")
+    parser.add_argument("--categories", nargs="+", choices=CATEGORIES, default=list(CATEGORIES),
+                        help="only these categories (default: all)")
     parser.add_argument("--setting", action="append", default=[], help="KEY=VALUE[,KEY=VALUE] of RepairSettings "
                         "(repeatable); the defaults are always measured first")
     args = parser.parse_args()
@@ -101,7 +103,8 @@ def main() -> None:
     start = time.perf_counter()
     with inference_threads(1):
         for label, convex, placement, (parts, gt, visible) in predicted_objects(args.count, model,
-                                                                                config.model.max_parts):
+                                                                                config.model.max_parts,
+                                                                                args.categories):
             for name, setting in settings.items():
                 repaired, report = repair_poses(convex, placement.assembly_from_part, setting)
                 fraction, whole = connectivity(convex, repaired)
