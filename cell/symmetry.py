@@ -13,13 +13,12 @@ part-frame coordinates about :attr:`PartSymmetry.centre_m`.
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 
 import numpy as np
 import trimesh
 
-from planning.pose import Pose, matrix_to_quat
+from planning.pose import AXIS_ROTATIONS, Pose, matrix_to_quat
 
 SYMMETRY_TOLERANCE_M = 0.001  # farthest a mapped surface sample may lie from the surface
 SURFACE_SAMPLES = 600
@@ -40,21 +39,6 @@ class PartSymmetry:
     centre_m: np.ndarray
     rotations: tuple[np.ndarray, ...]
     axes: tuple[np.ndarray, ...] = ()
-
-
-def _signed_permutations() -> list[np.ndarray]:
-    """The 24 proper rotations that map the coordinate axes onto themselves (signs and order)."""
-    out = []
-    for order in itertools.permutations(range(3)):
-        for signs in itertools.product((1.0, -1.0), repeat=3):
-            matrix = np.zeros((3, 3))
-            matrix[list(order), range(3)] = signs
-            if np.linalg.det(matrix) > 0:
-                out.append(matrix)
-    return out
-
-
-_AXIS_ROTATIONS = _signed_permutations()
 
 
 def surface_moments(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
@@ -111,7 +95,7 @@ def part_symmetry(mesh: trimesh.Trimesh, tolerance_m: float = SYMMETRY_TOLERANCE
         return PartSymmetry(centre, (np.eye(3),), tuple(axes))
     found: list[np.ndarray] = [np.eye(3)]
     for frame in (principal, np.eye(3)):
-        for permutation in _AXIS_ROTATIONS:
+        for permutation in AXIS_ROTATIONS:
             rotation = frame @ permutation @ frame.T
             if any(np.allclose(rotation, known, atol=1e-6) for known in found):
                 continue

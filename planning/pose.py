@@ -16,6 +16,7 @@ PyBullet (x-first quaternions), python-fcl (w-first, ``fcl.Transform``), scipy (
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -23,6 +24,7 @@ import numpy as np
 
 __all__ = [
     "Pose",
+    "AXIS_ROTATIONS",
     "quat_normalize",
     "quat_multiply",
     "quat_conjugate",
@@ -34,6 +36,21 @@ __all__ = [
 ]
 
 _UNIT_TOLERANCE = 1e-3
+
+
+def _axis_rotations() -> np.ndarray:
+    """(24, 3, 3): the proper rotations that map the coordinate axes onto themselves (signed permutations, det +1)."""
+    matrices = []
+    for order in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            matrix = np.zeros((3, 3))
+            matrix[list(order), range(3)] = signs
+            if np.linalg.det(matrix) > 0:
+                matrices.append(matrix)
+    return np.array(matrices)
+
+
+AXIS_ROTATIONS = _axis_rotations()
 
 
 def quat_normalize(quat_wxyz: Sequence[float] | np.ndarray) -> np.ndarray:

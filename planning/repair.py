@@ -35,14 +35,13 @@ The report says how far each part moved, and which pairs still overlap.
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 
 import numpy as np
 
 from planning.collision import ConvexPart, overlapping_pairs, signed_distance
 from planning.contact import contact_graph, touching_no_part
-from planning.pose import Pose, matrix_to_quat, quat_angle_rad
+from planning.pose import AXIS_ROTATIONS, Pose, matrix_to_quat, quat_angle_rad
 
 
 @dataclass(frozen=True)
@@ -73,21 +72,6 @@ class RepairReport:
     deepest_penetration_after_m: float
     overlapping_pairs_after: tuple[tuple[str, str, float], ...] = ()
     crossed_parts: tuple[str, ...] = ()
-
-
-def _axis_rotations() -> np.ndarray:
-    """The 24 rotations that map the coordinate axes onto the coordinate axes (signed permutations, det +1)."""
-    matrices = []
-    for order in itertools.permutations(range(3)):
-        for signs in itertools.product((1.0, -1.0), repeat=3):
-            matrix = np.zeros((3, 3))
-            matrix[list(order), range(3)] = signs
-            if np.linalg.det(matrix) > 0:
-                matrices.append(matrix)
-    return np.array(matrices)
-
-
-AXIS_ROTATIONS = _axis_rotations()
 
 
 def snap_rotation_to_axes(rotation: np.ndarray, tolerance_deg: float) -> np.ndarray:
