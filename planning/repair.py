@@ -27,8 +27,8 @@ failure). The repair, all in the assembly frame (metres, +z up, floor at z = 0):
    crossed parts may move or turn further, so assemblies without a crossing come out as before.
 
 Aligning (steps 1 and 5) takes each mesh's own axes for the part's: furniture parts are modelled along their own
-axes (every procedural part, and 257 of the 267 parts of ``../shared/furniture`` even sit unrotated in their
-assembly).
+axes (every procedural part, and every one of the 267 parts of ``../shared/furniture`` sits in its assembly turned
+by one of the 24 axis rotations, 257 of them unturned).
 
 The report says how far each part moved, and which pairs still overlap.
 """
