@@ -276,7 +276,7 @@ def test_crossing_failure_names_the_deepest_pair_over_the_limit():
     assert crossing_failure(pairs[2:], max_overlap_m=0.03, max_translation_m=0.05) == ""
 
 
-def test_predicted_targets_still_crossing_after_repair_are_refused(tmp_path):
+def test_predicted_targets_still_crossing_after_repair_are_refused():
     """A predicted cabinet with its top stood on edge through the middle (a quarter turn about y): the repair cannot
     part it from the shelves within its bounds, and the cell refuses to build it (exit 3 at the repair stage, naming
     the pair), keeping the repaired targets for overview.png, rather than planning a program that puts one panel

@@ -138,11 +138,16 @@ def test_snap_rotation():
     np.testing.assert_allclose(snap_rotation_to_axes(turned, 8.0), [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
     tilted = Rotation.from_rotvec([0, 0.3, 0]).as_matrix()  # 17 degrees: left alone
     np.testing.assert_array_equal(snap_rotation_to_axes(tilted, 8.0), tilted)
+    def angle_deg(a, b):
+        return np.degrees(np.arccos(np.clip((np.trace(a.T @ b) - 1) / 2, -1, 1)))
+
+    axis_rotations = Rotation.from_euler("zyx", [(a, b, c) for a in (0, 90, 180, 270) for b in (0, 90, 180, 270)
+                                                 for c in (0, 90, 180, 270)], degrees=True).as_matrix().round()
     for rotation in Rotation.random(200, random_state=0).as_matrix():  # with no tolerance, the nearest of the 24
         snapped = snap_rotation_to_axes(rotation, 180.0)
         assert set(np.unique(snapped)) <= {-1.0, 0.0, 1.0} and np.linalg.det(snapped) == pytest.approx(1.0)
-        angle = np.degrees(np.arccos(np.clip((np.trace(rotation.T @ snapped) - 1) / 2, -1, 1)))
-        assert angle <= 62.8 + 1e-6
+        assert angle_deg(rotation, snapped) <= 62.8 + 1e-6
+        assert angle_deg(rotation, snapped) <= min(angle_deg(rotation, r) for r in axis_rotations) + 1e-6
         assert snap_rotation_to_axes(snapped @ Rotation.from_rotvec([0.0, 0.0, 0.1]).as_matrix(), 8.0) \
             == pytest.approx(snapped)
 
