@@ -57,7 +57,7 @@ def run_object(category: str, level: str, index: int, out: Path, timeout_s: floa
     record = {"object": name, "exit_code": exit_code, "seconds": time.perf_counter() - start, "stage": None,
               "deepest_overlap_after_repair_mm": None}
     report_path = run_out / "report.json"
-    if exit_code is not None and report_path.exists():
+    if exit_code in (0, 3, 4):  # the exits that write a report (exit 1 and 2 leave an earlier run's folder as it was)
         report = json.loads(report_path.read_text())
         record["stage"] = (report.get("failure") or {}).get("stage")
         pairs = report.get("repair", {}).get("overlapping_pairs_after", [])
