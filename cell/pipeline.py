@@ -206,14 +206,16 @@ class Pipeline:
         the build's) or raise :class:`StageFailed` (exit 3)."""
         from cell.plan import PlanningFailed, plan_cell
         from planning.motion import MotionSettings
-        from planning.sequence import plan_assembly_sequence
+        from planning.sequence import failure_summary, plan_assembly_sequence
 
         upside_down = not np.allclose(build_from_target.rotation, np.eye(3))
         how = "upside down, " if upside_down else ""
         with self.console.stage("sequence", f"{how}assembly by disassembly"):
             sequence = plan_assembly_sequence(build, seed=self.args.seed)
         if not sequence.success:
-            raise StageFailed(EXIT_PLANNING, "sequence", sequence.reason)
+            self.report.setdefault("sequence_failures", []).append(
+                {"upside_down": upside_down, "reason": sequence.reason, "blocking": dict(sequence.blocking)})
+            raise StageFailed(EXIT_PLANNING, "sequence", failure_summary(sequence))
         self._record_sequence(sequence)
         self.console.say("    order: " + " > ".join(sequence.order))
 

@@ -103,10 +103,23 @@ def touching_no_part(contacts: nx.Graph) -> set[str]:
     return {node for node in contacts if node != FLOOR and all(other == FLOOR for other in contacts.neighbors(node))}
 
 
+def pieces(contacts: nx.Graph) -> list[set[str]]:
+    """The pieces of a :func:`contact_graph`: the sets of parts joined by contacts, the floor not counted (two
+    parts that only stand on the floor are two pieces), largest first, then by name."""
+    parts = contacts.subgraph(node for node in contacts if node != FLOOR)
+    return sorted((set(c) for c in nx.connected_components(parts)), key=lambda c: (-len(c), sorted(c)))
+
+
+def ungrounded(contacts: nx.Graph, present: set[str]) -> set[str]:
+    """The parts of ``present`` without a path of contacts to the floor through parts in ``present``: with parts
+    fastened where they touch, these would fall."""
+    if not present:
+        return set()
+    sub = contacts.subgraph(set(present) | {FLOOR})
+    return set(present) - nx.node_connected_component(sub, FLOOR)
+
+
 def all_grounded(contacts: nx.Graph, present: set[str]) -> bool:
     """Whether every part in ``present`` has a path of contacts to the floor through parts in ``present``
     (touching parts are fastened once placed, standing for the connectors)."""
-    if not present:
-        return True
-    sub = contacts.subgraph(set(present) | {FLOOR})
-    return len(nx.node_connected_component(sub, FLOOR)) == len(present) + 1
+    return not ungrounded(contacts, present)

@@ -24,7 +24,7 @@ import networkx as nx
 import numpy as np
 
 from planning.collision import ConvexPart, box_gap, signed_distance
-from planning.contact import FLOOR, all_grounded, contact_graph, support_graph
+from planning.contact import FLOOR, all_grounded, contact_graph, pieces, support_graph, ungrounded
 from planning.pose import Pose
 from planning.sweep import PENETRATION_TOLERANCE_M, blocks, leaves_above_floor, travel_to_clear_m
 
@@ -233,6 +233,15 @@ class _Planner:
         return None
 
 
+def _falling_reason(contacts, falling: set[str]) -> str:
+    """Why no order exists for targets where ``falling`` parts touch nothing that leads to the floor."""
+    groups = [piece for piece in pieces(contacts) if piece <= falling]
+    described = "; ".join(", ".join(sorted(group)) + (" (touching each other)" if len(group) > 1 else "")
+                          for group in groups)
+    return (f"{len(falling)} part(s) at their targets touch neither the floor nor any part that leads to it, so no "
+            f"order can place them (each part must rest on the floor or on parts fastened to it): {described}")
+
+
 def _direction_label(direction: np.ndarray) -> str:
     names = {(0, 0, 1): "+z", (0, 0, -1): "-z", (1, 0, 0): "+x", (-1, 0, 0): "-x", (0, 1, 0): "+y", (0, -1, 0): "-y"}
     key = tuple(int(v) for v in np.round(direction).astype(int))
@@ -250,6 +259,11 @@ def plan_sequence(parts: list[ConvexPart], poses: list[Pose], grasp_check: Grasp
     """
     start = time.perf_counter()
     planner = _Planner(parts, poses, grasp_check, floor_z_m, time_budget_s)
+    falling = ungrounded(planner.contacts, set(planner.names))
+    if falling:
+        return SequenceResult([], False, _falling_reason(planner.contacts, falling), {
+            name: "no path of contacts to the floor at its target" for name in sorted(falling)},
+            time.perf_counter() - start, 0)
     removal = planner.search(frozenset(planner.names))
     seconds = time.perf_counter() - start
     if removal is None:

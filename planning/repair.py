@@ -10,11 +10,13 @@ failure). The repair, all in the assembly frame (metres, +z up, floor at z = 0):
    pieces, :mod:`planning.collision`): a penetrating pair is pushed apart, a pair with a gap below
    ``snap_distance_m`` is pulled together; the floor is fixed, parts near it are set on it. Each correction is
    shared between the two parts.
-3. **Connect**: every piece of furniture is one connected whole, so a part that still touches no other part
-   (:func:`planning.contact.contact_graph`, the floor not counted) is moved, alone and by translation, into
-   contact with the nearest part within ``connect_distance_m``; then the contact rounds run again. The rounds
-   may part a joined part again (its neighbours move with their other contacts), so this step repeats, at most
-   ``connect_passes`` times.
+3. **Connect**: every piece of furniture is one connected whole, so while the parts form several pieces (sets
+   joined by contacts, :func:`planning.contact.pieces`, the floor not counted), a piece is moved whole, by
+   translation, into contact with its nearest part of another piece within ``connect_distance_m``: pieces off the
+   floor first (a predicted top and the legs hanging from it, short of the floor, come down onto the aprons; the
+   legs on the floor stay), then smaller ones (a lone part joins its neighbour). Then the contact rounds run
+   again. The rounds may part a joined piece again (its neighbours move with their other contacts), so this step
+   repeats, at most ``connect_passes`` times.
 4. **Bound**: a part's total displacement is clamped to ``max_translation_m`` (``crossing_translation_m`` for the
    parts of step 5) and its rotation to ``max_rotation_deg`` (step 1; step 5 may turn crossed parts further).
 5. **Uncross**: a pair the prediction crossed (a panel through a panel, most often in cabinets) overlaps by more
@@ -40,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from planning.collision import ConvexPart, overlapping_pairs, signed_distance
-from planning.contact import contact_graph, touching_no_part
+from planning.contact import FLOOR, contact_graph, pieces
 from planning.pose import AXIS_ROTATIONS, Pose, matrix_to_quat, quat_angle_rad
 
 
@@ -52,7 +54,7 @@ class RepairSettings:
     max_translation_m: float = 0.05
     max_rotation_deg: float = 10.0
     iterations: int = 40
-    connect_distance_m: float = 0.05  # an isolated part joins its nearest part within this (0: never)
+    connect_distance_m: float = 0.05  # a piece joins its nearest part of another within this (0: never)
     connect_passes: int = 3  # join, then contact rounds, at most this many times
     crossing_translation_m: float = 0.12  # bound for the parts of crossed pairs (<= max_translation_m: no step 5)
     crossing_depth_m: float = 0.03  # a pair overlapping by more than this after step 4 counts as crossed
@@ -144,44 +146,70 @@ def _contact_rounds(parts: list[ConvexPart], original: list[Pose], current: list
     return current
 
 
-def _connect_isolated(parts: list[ConvexPart], original: list[Pose], current: list[Pose],
-                      settings: RepairSettings, bounds_m: list[float]) -> list[Pose]:
-    """Step 3: each part touching no other part, smallest first, moved by translation onto its nearest part when
-    that is within ``connect_distance_m`` (and the move within the bound). Returns ``current`` itself when nothing
-    moved."""
+def _piece_size_m(parts: list[ConvexPart], poses: list[Pose], members: list[int]) -> float:
+    """Diagonal of the box around a piece's parts (metres)."""
+    corners = np.concatenate([parts[i].bounds(poses[i]) for i in members])
+    return float(np.linalg.norm(np.ptp(corners, axis=0)))
+
+
+def _join_move(parts: list[ConvexPart], poses: list[Pose], members: list[int], distance_m: float) -> np.ndarray | None:
+    """The translation (metres) that puts the piece ``members`` in contact with its nearest part outside it, when
+    that part is within ``distance_m``; None otherwise."""
+    inside = set(members)
+    nearest = None
+    for i in members:
+        for j in range(len(parts)):
+            if j in inside:
+                continue
+            result = signed_distance(parts[i], poses[i], parts[j], poses[j], distance_m)
+            if result.measured and result.normal_ab is not None and 0 < result.distance_m <= distance_m and (
+                    nearest is None or result.distance_m < nearest.distance_m):
+                nearest = result
+    # normal_ab points from the piece to its nearest part: close the gap
+    return None if nearest is None else nearest.distance_m * nearest.normal_ab
+
+
+def _connect_pieces(parts: list[ConvexPart], original: list[Pose], current: list[Pose],
+                    settings: RepairSettings, bounds_m: list[float]) -> list[Pose]:
+    """Step 3: while the assembly is in several pieces (parts joined by contacts, the floor not counted), a piece
+    is moved whole, by translation, onto its nearest part of another piece when that is within
+    ``connect_distance_m`` and every part of it stays within its bound; pieces off the floor first (what touches
+    the floor stands), then smaller ones. Returns ``current`` itself when nothing moved."""
     if len(parts) < 2:
         return current
-    alone = touching_no_part(contact_graph(parts, current))
-    isolated = [i for i, part in enumerate(parts) if part.name in alone]
-    # smallest first: of two parts floating apart, the smaller moves onto the larger
-    isolated.sort(key=lambda i: float(np.linalg.norm(np.ptp(parts[i].vertices, axis=0))))
+    index = {part.name: k for k, part in enumerate(parts)}
     joined = list(current)
-    for i in isolated:
-        nearest = None
-        for j in range(len(parts)):
-            if j == i:
-                continue
-            result = signed_distance(parts[i], joined[i], parts[j], joined[j], settings.connect_distance_m)
-            if result.measured and result.normal_ab is not None and 0 < result.distance_m <= \
-                    settings.connect_distance_m and (nearest is None or result.distance_m < nearest.distance_m):
-                nearest = result
-        if nearest is None:
-            continue
-        # normal_ab points from part i to its nearest part: close the gap, i alone
-        candidate = Pose(joined[i].position + nearest.distance_m * nearest.normal_ab, joined[i].quat_wxyz)
-        clamped = _clamped(parts[i], original[i], candidate, bounds_m[i])
-        if clamped is candidate:  # a move cut short by the bound would leave the part isolated anyway
-            joined[i] = candidate
+    stuck: set[frozenset] = set()
+    while True:
+        graph = contact_graph(parts, joined)
+        found = pieces(graph)
+        if len(found) < 2:
+            break
+        standing = set(graph.neighbors(FLOOR))
+        movable = sorted((sorted(index[name] for name in piece) for piece in found if frozenset(piece) not in stuck),
+                         key=lambda m: (any(parts[i].name in standing for i in m), _piece_size_m(parts, joined, m), m))
+        for members in movable:
+            move = _join_move(parts, joined, members, settings.connect_distance_m)
+            if move is not None:
+                candidates = {i: Pose(joined[i].position + move, joined[i].quat_wxyz) for i in members}
+                # a move cut short by the bound would leave the piece apart anyway
+                if all(_clamped(parts[i], original[i], c, bounds_m[i]) is c for i, c in candidates.items()):
+                    for i, candidate in candidates.items():
+                        joined[i] = candidate
+                    break
+            stuck.add(frozenset(parts[i].name for i in members))
+        else:
+            break
     return joined if any(a is not b for a, b in zip(joined, current)) else current
 
 
 def _contact_and_connect(parts: list[ConvexPart], original: list[Pose], current: list[Pose],
                          settings: RepairSettings, floor_z_m: float, bounds_m: list[float]) -> list[Pose]:
-    """Steps 2 and 3: contact rounds, then join isolated parts and run the rounds again, repeated."""
+    """Steps 2 and 3: contact rounds, then join the pieces and run the rounds again, repeated."""
     current = _contact_rounds(parts, original, current, settings, floor_z_m, bounds_m)
     for _ in range(settings.connect_passes if settings.connect_distance_m > 0 else 0):
         # the contact rounds after a join move the joined part's neighbours too and may part it again: join anew
-        joined = _connect_isolated(parts, original, current, settings, bounds_m)
+        joined = _connect_pieces(parts, original, current, settings, bounds_m)
         if joined is current:
             break
         current = _contact_rounds(parts, original, joined, settings, floor_z_m, bounds_m)

@@ -121,6 +121,18 @@ def plan_assembly_sequence(assembly: Assembly, seed: int = 0, check_grasps: bool
     return result
 
 
+def failure_summary(result: SequenceResult, limit: int = 2) -> str:
+    """``result.reason`` with why the first ``limit`` parts of the sub-assembly the search could not take apart
+    stayed in, the parts blocked or without a grasp before those whose removal would leave others unsupported
+    (those follow from the first)."""
+    ranked = sorted(result.blocking.items(), key=lambda item: ("without support" in item[1], item[0]))
+    if not ranked:
+        return result.reason
+    why = "; ".join(f"{part!r}: {text}" for part, text in ranked[:limit])
+    more = f"; {len(ranked) - limit} more in report.json" if len(ranked) > limit else ""
+    return f"{result.reason} (why: {why}{more})"
+
+
 def result_to_json(assembly: Assembly, result: SequenceResult) -> dict:
     steps = []
     for index, step in enumerate(result.steps, start=1):

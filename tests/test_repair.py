@@ -179,21 +179,49 @@ def test_an_isolated_part_joins_its_nearest_part(gap_m, joins):
 
 def test_joining_repeats_when_the_contact_rounds_part_a_joined_part_again():
     """The sample chair, its truth poses moved by 3 cm (sigma): after one join pass and the contact rounds that
-    follow it one part touches nothing again (its neighbours moved with their other contacts); the default passes
-    join it anew, within the bound."""
-    from planning.contact import touching_no_part
+    follow it the chair is in two pieces again (a part's neighbours moved with their other contacts); the default
+    passes join it anew, within the bound."""
+    from planning.contact import pieces
 
     assembly = read_assembly(sample_folder("chair"))
     parts = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
-    noisy = perturbed([p.assembly_from_part for p in assembly.parts], seed=16, position_sigma_m=0.03,
+    noisy = perturbed([p.assembly_from_part for p in assembly.parts], seed=0, position_sigma_m=0.03,
                       angle_sigma_deg=3.0)
 
-    def isolated(poses):
-        return touching_no_part(contact_graph(parts, poses))
+    def piece_count(poses):
+        return len(pieces(contact_graph(parts, poses)))
 
     once, _ = repair_poses(parts, noisy, RepairSettings(connect_passes=1))
     settings = RepairSettings()
     assert settings.connect_passes > 1
     repeated, report = repair_poses(parts, noisy, settings)
-    assert len(isolated(once)) == 1 and isolated(repeated) == set()
+    assert piece_count(noisy) > 1 and piece_count(once) == 2 and piece_count(repeated) == 1
     assert max(report.translation_m.values()) <= settings.max_translation_m + 1e-9
+
+
+def test_a_floating_piece_of_several_parts_is_lowered_onto_the_standing_one():
+    """A board with a block fastened on it hangs 3 cm above a post standing on the floor (a predicted table top
+    and its legs, short of the aprons): the two touching parts move down together onto the post, which stays on
+    the floor. Joining parts one at a time would lift the post off the floor instead and leave the board and
+    block hanging."""
+    import trimesh
+
+    from planning.contact import FLOOR, pieces, ungrounded
+
+    board = ConvexPart.from_mesh("board", trimesh.creation.box((0.30, 0.20, 0.02)))
+    block = ConvexPart.from_mesh("block", trimesh.creation.box((0.05, 0.05, 0.05)))
+    post = ConvexPart.from_mesh("post", trimesh.creation.box((0.03, 0.03, 0.40)))
+    identity = np.array([1.0, 0.0, 0.0, 0.0])
+    gap_m = 0.03
+    poses = [Pose(np.array([0.0, 0.0, 0.41 + gap_m]), identity),  # board: 0.40 + gap to 0.42 + gap
+             Pose(np.array([0.10, 0.0, 0.445 + gap_m]), identity),  # block: on the board
+             Pose(np.array([0.0, 0.0, 0.20]), identity)]  # post: on the floor, top at 0.40
+    parts = [board, block, post]
+    assert len(pieces(contact_graph(parts, poses))) == 2
+    repaired, report = repair_poses(parts, poses, RepairSettings(snap_distance_m=0.01))
+    graph = contact_graph(parts, repaired)
+    assert pieces(graph) == [{"board", "block", "post"}]
+    assert ungrounded(graph, {"board", "block", "post"}) == set() and graph.has_edge(FLOOR, "post")
+    assert report.translation_m["post"] < 1e-9
+    assert report.translation_m["board"] == pytest.approx(gap_m, abs=1e-4)
+    assert report.translation_m["block"] == pytest.approx(gap_m, abs=1e-4)

@@ -288,6 +288,32 @@ def test_blocked_everywhere_is_explained():
     assert not result.success
     assert "blocked in every direction" in result.blocking["inner"] and "housing" in result.blocking["inner"]
     assert "inner" in result.blocking["housing"]
+    from planning.sequence import failure_summary
+
+    assert failure_summary(result).startswith(result.reason + " (why: 'housing': blocked in every direction")
+
+
+def test_parts_that_touch_nothing_leading_to_the_floor_are_named():
+    """A bar on the floor, and 3 cm above it a box with a lid on it (a predicted top and its legs hanging short of
+    the rest): no order exists, and the reason names the two hanging parts, not a search that found nothing;
+    lowered onto the bar, the same parts have an order."""
+    from planning.sequence import failure_summary
+
+    def stack(lift_m):
+        return Assembly("hanging", [
+            box_part("bottom", (0.2, 0.07, 0.05), [0, 0, 0.025]),
+            box_part("box", (0.06, 0.06, 0.04), [0, 0, 0.07 + lift_m]),
+            box_part("lid", (0.06, 0.06, 0.01), [0, 0, 0.095 + lift_m]),
+        ])
+
+    parts, poses = convex_parts(stack(0.03))
+    result = plan_sequence(parts, poses)
+    assert not result.success and result.states_expanded == 0
+    assert set(result.blocking) == {"box", "lid"}
+    assert "box, lid (touching each other)" in result.reason and "floor" in result.reason
+    summary = failure_summary(result)
+    assert summary.startswith(result.reason) and "'box': no path of contacts to the floor" in summary
+    assert plan_sequence(*convex_parts(stack(0.0))).success
 
 
 @pytest.mark.parametrize("category,level", [
