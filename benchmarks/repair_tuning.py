@@ -8,9 +8,11 @@ training (seed 0) nor the held-out test sets (seed 1000) use.
 Objects: ``--count`` per category (chair, table, cabinet, or ``--categories``) and level (3, mixed), drawn as
 ``python -m perception.synth --seed 2000`` draws them, parts in a random order, one view each rendered and
 predicted as ``perception.evaluate --assemblies`` does (bundled weights, up from the picture). The network runs
-once per object; every setting then repairs the same predicted poses. The first row is the default settings; the
-parts still touching nothing after the default repair are listed by their distance to the nearest part, which
-is what ``connect_distance_m`` and ``max_translation_m`` decide. Prints a Markdown table.
+once per object; every setting then repairs the same predicted poses. The first row is the default settings.
+Columns: connectivity (parts touching another), one piece (objects whose parts form one connected whole), grounded
+(objects whose every part has a path of contacts to the floor, which a standing build needs). The pieces still
+apart after the default repair are listed by their distance to the nearest part outside them, which is what
+``connect_distance_m`` and ``max_translation_m`` decide. Prints a Markdown table.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ from perception.predict import prepare_parts, run_network  # noqa: E402
 from perception.synth import generate  # noqa: E402
 from perception.weights import BUNDLED_WEIGHTS, inference_threads, load_for_inference  # noqa: E402
 from planning.collision import ConvexPart, signed_distance  # noqa: E402
-from planning.contact import contact_graph, touching_no_part  # noqa: E402
+from planning.contact import contact_graph, pieces, ungrounded  # noqa: E402
 from planning.repair import RepairSettings, repair_poses  # noqa: E402
 
 CATEGORIES = ("chair", "table", "cabinet")
@@ -74,15 +76,15 @@ def predicted_objects(count: int, model, max_parts: int, categories=CATEGORIES):
                 yield f"{category} {level}", convex, placement, (parts, gt, view.visible_pixels)
 
 
-def isolated_gaps_m(convex: list[ConvexPart], poses) -> list[float]:
-    """For each part touching no other part: the distance to its nearest part (metres)."""
-    alone = touching_no_part(contact_graph(convex, poses))
+def piece_gaps_m(convex: list[ConvexPart], poses) -> list[float]:
+    """For each piece but the largest (:func:`planning.contact.pieces`): the distance from its parts to the
+    nearest part outside it (metres), what ``connect_distance_m`` and the bounds decide."""
+    index = {part.name: i for i, part in enumerate(convex)}
     gaps = []
-    for i, part in enumerate(convex):
-        if part.name not in alone:
-            continue
-        distances = [signed_distance(part, poses[i], other, poses[j], 1.0) for j, other in enumerate(convex)
-                     if j != i]
+    for piece in pieces(contact_graph(convex, poses))[1:]:
+        inside = [index[name] for name in piece]
+        distances = [signed_distance(convex[i], poses[i], other, poses[j], 1.0) for i in inside
+                     for j, other in enumerate(convex) if other.name not in piece]
         gaps.append(min((d.distance_m for d in distances if d.measured), default=float("inf")))
     return gaps
 
@@ -97,7 +99,7 @@ def main() -> None:
     args = parser.parse_args()
     settings = {"default": RepairSettings()} | {text: parse_setting(text) for text in args.setting}
     model, config, _, _ = load_for_inference(BUNDLED_WEIGHTS)
-    keys = ("connectivity", "one_piece", "pa", "moved_mm", "penetration_mm", "crossing", "label")
+    keys = ("connectivity", "one_piece", "grounded", "pa", "moved_mm", "penetration_mm", "crossing", "label")
     rows = {name: {key: [] for key in keys} for name in settings}
     gaps: list[float] = []
     start = time.perf_counter()
@@ -114,20 +116,22 @@ def main() -> None:
                 row = rows[name]
                 row["connectivity"].append(fraction)
                 row["one_piece"].append(float(whole))
+                row["grounded"].append(float(not ungrounded(contact_graph(convex, repaired), {p.name for p in convex})))
                 row["pa"].append(float(np.mean(result.correct)))
                 row["moved_mm"].append(1000 * max(report.translation_m.values()))
                 row["penetration_mm"].append(1000 * report.deepest_penetration_after_m)
                 row["crossing"].append(float(report.deepest_penetration_after_m > MAX_GIVEN_OVERLAP_M))
                 row["label"].append(label)
                 if name == "default":
-                    gaps += isolated_gaps_m(convex, repaired)
+                    gaps += piece_gaps_m(convex, repaired)
             print(f"{label}: {len(rows['default']['pa'])} objects, {time.perf_counter() - start:.0f} s", flush=True)
     print(f"\n{len(rows['default']['pa'])} objects (seed {TUNING_SEED}), {time.perf_counter() - start:.0f} s\n")
-    print("| settings | connectivity | one piece | PA repaired | largest move mean / max mm | deepest penetration "
-          "after mean / max mm | crossing after repair |")
-    print("|---|---|---|---|---|---|---|")
+    print("| settings | connectivity | one piece | grounded | PA repaired | largest move mean / max mm | deepest "
+          "penetration after mean / max mm | crossing after repair |")
+    print("|---|---|---|---|---|---|---|---|")
     for name, row in rows.items():
         print(f"| {name} | {np.mean(row['connectivity']):.3f} | {np.mean(row['one_piece']):.3f} | "
+              f"{np.mean(row['grounded']):.3f} | "
               f"{np.mean(row['pa']):.3f} | {np.mean(row['moved_mm']):.1f} / {np.max(row['moved_mm']):.1f} | "
               f"{np.mean(row['penetration_mm']):.1f} / {np.max(row['penetration_mm']):.1f} | "
               f"{np.mean(row['crossing']):.3f} |")
@@ -141,7 +145,8 @@ def main() -> None:
         cells = [f"{np.mean(pa[label == x]):.3f} / {np.mean(crossing[label == x]):.2f}" for x in labels]
         print(f"| {name} | " + " | ".join(cells) + " |")
     gaps_mm = 1000 * np.array(gaps)
-    print(f"\nParts touching nothing after the default repair: {len(gaps)}; distance to the nearest part (mm): "
+    print(f"\nPieces apart from the largest after the default repair: {len(gaps)}; distance to the nearest part "
+          "outside (mm): "
           + ", ".join(f"<= {b}: {int(np.sum(gaps_mm <= b))}" for b in (10, 25, 50, 75, 100, 150, 250))
           + f", more: {int(np.sum(gaps_mm > 250))}")
 

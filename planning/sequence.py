@@ -126,7 +126,7 @@ def failure_summary(result: SequenceResult, limit: int = 2) -> str:
     stayed in, the parts blocked or without a grasp before those whose removal would leave others unsupported
     (those follow from the first)."""
     ranked = sorted(result.blocking.items(), key=lambda item: ("without support" in item[1], item[0]))
-    if not ranked:
+    if not ranked or result.states_expanded == 0:  # refused before any search (parts off the floor): said in full
         return result.reason
     why = "; ".join(f"{part!r}: {text}" for part, text in ranked[:limit])
     more = f"; {len(ranked) - limit} more in report.json" if len(ranked) > limit else ""
