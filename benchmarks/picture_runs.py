@@ -6,9 +6,10 @@ Each object is a held-out test object of ``benchmarks/perception_accuracy.py`` (
 ``default_rng([1000, i])``; training used seed 0), written under ``OUT/objects/``. Its picture is rendered as a user
 would render it (``python -m cell.render OBJECT --out OUT/pictures/NAME.png --seed 0``), then the whole command
 runs in its own process on that picture and the loose parts (bundled weights, ``--no-animation``, seed 0; output
-under ``OUT/runs/NAME``). Prints a Markdown table: per object the exit code, the stage that failed, the wall time
-and the deepest overlap left after the pose repair (what ``cell.run`` refuses above 30 mm). A success means the cell
-built the *predicted* assembly; each run's ``overview.png`` shows how far that is from the picture.
+under ``OUT/runs/NAME``). Prints a Markdown table: per object the exit code, the stage that failed, the wall time,
+the deepest overlap left after the pose repair (what ``cell.run`` refuses above 30 mm) and the start of the failure's
+message. A success means the cell built the *predicted* assembly; each run's ``overview.png`` shows how far that is
+from the picture.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from planning.assembly import write_assembly  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 TEST_SEED = 1000  # the held-out sets of benchmarks/perception_accuracy.py
+WHY_CHARS = 90  # of a failure's message in the table (records.json keeps it whole)
 
 
 def run_object(category: str, level: str, index: int, out: Path, timeout_s: float) -> dict:
@@ -52,14 +54,16 @@ def run_object(category: str, level: str, index: int, out: Path, timeout_s: floa
                                  str(folder / "parts"), "--out", str(run_out), "--no-animation", "--quiet",
                                  "--seed", "0"], cwd=ROOT, capture_output=True, text=True, timeout=timeout_s)
         exit_code = result.returncode
+        last_error = (result.stderr.strip().splitlines() or [""])[-1]
     except subprocess.TimeoutExpired:
-        exit_code = None
+        exit_code, last_error = None, ""
     record = {"object": name, "exit_code": exit_code, "seconds": time.perf_counter() - start, "stage": None,
-              "deepest_overlap_after_repair_mm": None}
+              "deepest_overlap_after_repair_mm": None, "why": last_error}
     report_path = run_out / "report.json"
     if exit_code in (0, 3, 4):  # the exits that write a report (exit 1 and 2 leave an earlier run's folder as it was)
         report = json.loads(report_path.read_text())
         record["stage"] = (report.get("failure") or {}).get("stage")
+        record["why"] = (report.get("failure") or {}).get("message", "")
         pairs = report.get("repair", {}).get("overlapping_pairs_after", [])
         record["deepest_overlap_after_repair_mm"] = 1000 * max((p["depth_m"] for p in pairs), default=0.0)
     return record
@@ -83,12 +87,14 @@ def main() -> None:
     (args.out / "records.json").write_text(json.dumps(records, indent=1))
     print(f"\nMachine: {platform.machine()}, {len(os.sched_getaffinity(0))} cores. "
           f"{category} {level}, test objects {args.first}-{args.first + args.count - 1}.\n")
-    print("| object | exit | failed stage | seconds | deepest overlap after repair, mm |")
-    print("|---|---|---|---|---|")
+    print("| object | exit | failed stage | seconds | deepest overlap after repair, mm | why (first words) |")
+    print("|---|---|---|---|---|---|")
     for r in records:
         overlap = "-" if r["deepest_overlap_after_repair_mm"] is None else f"{r['deepest_overlap_after_repair_mm']:.0f}"
         exit_code = "timeout" if r["exit_code"] is None else r["exit_code"]
-        print(f"| {r['object']} | {exit_code} | {r['stage'] or '-'} | {r['seconds']:.0f} | {overlap} |")
+        why = r["why"] if len(r["why"]) <= WHY_CHARS else r["why"][:WHY_CHARS - 3].rstrip() + "..."
+        print(f"| {r['object']} | {exit_code} | {r['stage'] or '-'} | {r['seconds']:.0f} | {overlap} | "
+              f"{why.replace('|', '/') or '-'} |")
     done = [r for r in records if r["exit_code"] == 0]
     print(f"\nexit 0: {len(done)} of {len(records)}")
 
