@@ -4,7 +4,8 @@ Starting from the full target assembly, repeatedly take out a part that
 
 1. leaves along a collision-free straight line (:mod:`planning.sweep`; the floor counts as an obstacle),
 2. leaves the rest stable: every remaining part keeps a path of contacts to the floor (parts that touch are
-   fastened once placed, standing for the connectors), and
+   fastened once placed, standing for the connectors; targets where a part has no such path to begin with, a
+   predicted part in mid air, are refused before any search, naming those parts), and
 3. can be grasped at its target among the parts that remain (those placed before it), by a caller-given check.
 
 Reversed, this is an assembly order with an insertion direction (minus the removal direction) and a grasp per
