@@ -180,7 +180,7 @@ def _connect_pieces(parts: list[ConvexPart], original: list[Pose], current: list
     index = {part.name: k for k, part in enumerate(parts)}
     joined = list(current)
     stuck: set[frozenset] = set()
-    while True:
+    for _ in range(len(parts)):  # each join merges two pieces at least: at most n - 1 joins
         graph = contact_graph(parts, joined)
         found = pieces(graph)
         if len(found) < 2:
