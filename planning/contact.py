@@ -98,11 +98,6 @@ def support_graph(contacts: nx.Graph) -> nx.DiGraph:
     return support
 
 
-def touching_no_part(contacts: nx.Graph) -> set[str]:
-    """The parts of a :func:`contact_graph` that touch no other part (touching only the floor counts as none)."""
-    return {node for node in contacts if node != FLOOR and all(other == FLOOR for other in contacts.neighbors(node))}
-
-
 def pieces(contacts: nx.Graph) -> list[set[str]]:
     """The pieces of a :func:`contact_graph`: the sets of parts joined by contacts, the floor not counted (two
     parts that only stand on the floor are two pieces), largest first, then by name."""
