@@ -1,13 +1,15 @@
-"""From a picture, end to end: ``python -m cell.run --image`` on held-out procedural objects.
+"""From a picture, end to end: ``python -m cell.run --image`` on held-out procedural objects or real furniture.
 
     python benchmarks/picture_runs.py --set cabinet 3 --first 0 --count 8 --out out/picture_runs
+    python benchmarks/picture_runs.py --furniture ../shared/furniture --first 0 --count 42 --out out/picture_runs
 
 Each object is a held-out test object of ``benchmarks/perception_accuracy.py`` (``perception.synth``,
-``default_rng([1000, i])``; training used seed 0), written under ``OUT/objects/``. Its picture is rendered as a user
-would render it (``python -m cell.render OBJECT --out OUT/pictures/NAME.png --seed 0``), then the whole command
-runs in its own process on that picture and the loose parts (bundled weights, ``--no-animation``, seed 0; output
-under ``OUT/runs/NAME``). Prints a Markdown table: per object the exit code, the stage that failed, the wall time,
-the deepest overlap left after the pose repair (what ``cell.run`` refuses above 30 mm) and the start of the failure's
+``default_rng([1000, i])``; training used seed 0), written under ``OUT/objects/``, or with ``--furniture`` an
+assembly folder of real furniture (never trained on). Its picture is rendered as a user would render it
+(``python -m cell.render OBJECT --out OUT/pictures/NAME.png --seed 0``), then the whole command runs in its own
+process on that picture and the loose parts (bundled weights, ``--no-animation``, seed 0; output under
+``OUT/runs/NAME``). Prints a Markdown table: per object the exit code, the stage that failed, the wall time, the
+deepest overlap left after the pose repair (what ``cell.run`` refuses above 30 mm) and the start of the failure's
 message. A success means the cell built the *predicted* assembly; each run's ``overview.png`` shows how far that is
 from the picture.
 """
@@ -36,13 +38,18 @@ TEST_SEED = 1000  # the held-out sets of benchmarks/perception_accuracy.py
 WHY_CHARS = 90  # of a failure's message in the table (records.json keeps it whole)
 
 
-def run_object(category: str, level: str, index: int, out: Path, timeout_s: float) -> dict:
-    """Write, render and run one held-out object; its record."""
+def held_out_object(category: str, level: str, index: int, out: Path) -> tuple[str, Path]:
+    """(name, folder) of a held-out test object, written under ``out/objects`` the first time."""
     name = f"{category}_{level}_s{TEST_SEED}_{index:05d}"
     folder = out / "objects" / name
     if not (folder / "assembly.json").exists():
         write_assembly(generate(category, level, np.random.default_rng([TEST_SEED, index]), name), folder,
                        overwrite=True)
+    return name, folder
+
+
+def run_object(name: str, folder: Path, out: Path, timeout_s: float) -> dict:
+    """Render the assembly folder ``folder`` and run the cell on its picture and loose parts; its record."""
     picture = out / "pictures" / f"{name}.png"
     picture.parent.mkdir(parents=True, exist_ok=True)
     subprocess.run([sys.executable, "-m", "cell.render", str(folder), "--out", str(picture), "--seed", "0"],
@@ -77,16 +84,27 @@ def main() -> None:
     parser.add_argument("--count", type=int, default=8, help="objects to run")
     parser.add_argument("--out", type=Path, default=Path("out/picture_runs"))
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds per run")
+    parser.add_argument("--furniture", type=Path, help="run these assembly folders instead (e.g. ../shared/furniture, "
+                        "in name order; --first and --count select among them)")
     args = parser.parse_args()
-    category, level = args.set
+    indices = range(args.first, args.first + args.count)
+    if args.furniture is not None:
+        folders = sorted(p for p in args.furniture.iterdir() if (p / "assembly.json").is_file())
+        objects = [(folder.name, folder) for folder in folders[args.first:args.first + args.count]]
+        if not objects:
+            raise SystemExit(f"--furniture {args.furniture}: no assembly folders at --first {args.first}")
+        described = f"{args.furniture.name}, folders {args.first}-{args.first + len(objects) - 1} in name order"
+    else:
+        category, level = args.set
+        objects = [held_out_object(category, level, index, args.out) for index in indices]
+        described = f"{category} {level}, test objects {args.first}-{args.first + args.count - 1}"
     records = []
-    for index in range(args.first, args.first + args.count):
-        record = run_object(category, level, index, args.out, args.timeout)
+    for name, folder in objects:
+        record = run_object(name, folder, args.out, args.timeout)
         records.append(record)
         print(f"{record['object']}: exit {record['exit_code']}, {record['seconds']:.0f} s", flush=True)
     (args.out / "records.json").write_text(json.dumps(records, indent=1))
-    print(f"\nMachine: {platform.machine()}, {len(os.sched_getaffinity(0))} cores. "
-          f"{category} {level}, test objects {args.first}-{args.first + args.count - 1}.\n")
+    print(f"\nMachine: {platform.machine()}, {len(os.sched_getaffinity(0))} cores. {described}.\n")
     print("| object | exit | failed stage | seconds | deepest overlap after repair, mm | why (first words) |")
     print("|---|---|---|---|---|---|")
     for r in records:
