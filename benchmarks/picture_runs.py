@@ -87,8 +87,9 @@ def main() -> None:
     parser.add_argument("--furniture", type=Path, help="run these assembly folders instead (e.g. ../shared/furniture, "
                         "in name order; --first and --count select among them)")
     args = parser.parse_args()
-    indices = range(args.first, args.first + args.count)
     if args.furniture is not None:
+        if not args.furniture.is_dir():
+            raise SystemExit(f"--furniture {args.furniture}: not a folder")
         folders = sorted(p for p in args.furniture.iterdir() if (p / "assembly.json").is_file())
         objects = [(folder.name, folder) for folder in folders[args.first:args.first + args.count]]
         if not objects:
@@ -96,7 +97,8 @@ def main() -> None:
         described = f"{args.furniture.name}, folders {args.first}-{args.first + len(objects) - 1} in name order"
     else:
         category, level = args.set
-        objects = [held_out_object(category, level, index, args.out) for index in indices]
+        objects = [held_out_object(category, level, index, args.out)
+                   for index in range(args.first, args.first + args.count)]
         described = f"{category} {level}, test objects {args.first}-{args.first + args.count - 1}"
     records = []
     for name, folder in objects:
