@@ -155,13 +155,17 @@ class Pipeline:
                                                              for a, b, depth in repair.overlapping_pairs_after],
                                  "crossed_parts": list(repair.crossed_parts),
                                  "max_translation_m": settings.max_translation_m,
-                                 "crossing_translation_m": settings.crossing_translation_m}
+                                 "crossing_translation_m": settings.crossing_translation_m,
+                                 "lowered_m": repair.lowered_m}
         if repair.crossed_parts:
             turned = "turned onto the assembly axes and " if settings.crossing_align_tolerance_deg >= 180 else ""
             self.console.say(f"    parts crossing another by over {settings.crossing_depth_m * 1000:.0f} mm, {turned}"
                              f"allowed to move up to "
                              f"{settings.crossing_translation_m * 1000:.0f} mm (the others "
                              f"{settings.max_translation_m * 1000:.0f} mm): {', '.join(repair.crossed_parts)}")
+        if repair.lowered_m:
+            self.console.say(f"    no part touched the floor after the repair: the whole assembly lowered "
+                             f"{repair.lowered_m * 1000:.0f} mm onto it")
         message = crossing_failure(repair.overlapping_pairs_after, MAX_GIVEN_OVERLAP_M,
                                    max(settings.max_translation_m, settings.crossing_translation_m))
         crossed = (message, next(a for a, _, depth in repair.overlapping_pairs_after

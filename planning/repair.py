@@ -27,6 +27,11 @@ failure). The repair, all in the assembly frame (metres, +z up, floor at z = 0):
    from an upright carcass by moving it), the other parts keep theirs, and steps 2-3 run again; at most
    ``crossing_passes`` times (never when ``crossing_translation_m`` is no wider than ``max_translation_m``). Only
    crossed parts may move or turn further, so assemblies without a crossing come out as before.
+6. **Rest**: where no part touches the floor at the end (a repaired assembly in one piece, hanging 15-30 mm above
+   it because the rounds lifted its lowest part, or because its lowest part joined a hanging piece), the whole
+   assembly is lowered onto the floor when it is at most ``rest_distance_m`` above it. This moves no part
+   relative to another; each part's reported displacement includes it, so a part may end up to
+   ``rest_distance_m`` beyond its bound from step 4.
 
 Aligning (steps 1 and 5) takes each mesh's own axes for the part's: furniture parts are modelled along their own
 axes (every procedural part, and every one of the 267 parts of ``../shared/furniture`` sits in its assembly turned
@@ -60,13 +65,15 @@ class RepairSettings:
     crossing_depth_m: float = 0.03  # a pair overlapping by more than this after step 4 counts as crossed
     crossing_passes: int = 2  # widen the bound for newly crossed pairs, then contact rounds, at most this often
     crossing_align_tolerance_deg: float = 180.0  # step 5 aligns crossed parts within this (180: always)
+    rest_distance_m: float = 0.05  # step 6 lowers a whole assembly hanging at most this far above the floor (0: never)
 
 
 @dataclass(frozen=True)
 class RepairReport:
     """How far each part moved (metres, degrees), the deepest penetration before and after (metres), and the
     pairs that still overlap by more than ``penetration_tolerance_m`` after: (name a, name b, depth in metres),
-    deepest first; the parts of crossed pairs (step 5: the wider bound, turned onto the axes), in part order."""
+    deepest first; the parts of crossed pairs (step 5: the wider bound, turned onto the axes), in part order; how
+    far step 6 lowered the whole assembly onto the floor (metres, 0 when it did not)."""
 
     translation_m: dict[str, float]
     rotation_deg: dict[str, float]
@@ -74,6 +81,7 @@ class RepairReport:
     deepest_penetration_after_m: float
     overlapping_pairs_after: tuple[tuple[str, str, float], ...] = ()
     crossed_parts: tuple[str, ...] = ()
+    lowered_m: float = 0.0
 
 
 def snap_rotation_to_axes(rotation: np.ndarray, tolerance_deg: float) -> np.ndarray:
@@ -216,6 +224,19 @@ def _contact_and_connect(parts: list[ConvexPart], original: list[Pose], current:
     return current
 
 
+def _rested(parts: list[ConvexPart], current: list[Pose], settings: RepairSettings,
+            floor_z_m: float) -> tuple[list[Pose], float]:
+    """Step 6: ``current`` lowered whole onto the floor when no part touches it (the floor contact of
+    :func:`planning.contact.contact_graph`) and its lowest point is at most ``rest_distance_m`` above it; and how
+    far it was lowered (metres)."""
+    if settings.rest_distance_m <= 0 or not parts or contact_graph(parts, current, floor_z_m).degree(FLOOR) > 0:
+        return current, 0.0
+    height = min(float(pose.apply(part.vertices)[:, 2].min()) for part, pose in zip(parts, current)) - floor_z_m
+    if not 0.0 < height <= settings.rest_distance_m:
+        return current, 0.0  # lowered only part of the way, it would still hang
+    return [Pose(pose.position - [0.0, 0.0, height], pose.quat_wxyz) for pose in current], height
+
+
 def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSettings = RepairSettings(),
                  floor_z_m: float = 0.0) -> tuple[list[Pose], RepairReport]:
     """Repaired ``assembly_from_part`` poses (same order as ``parts``) and the report."""
@@ -238,6 +259,7 @@ def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSet
                 current[k] = _aligned(parts[k], current[k], settings.crossing_align_tolerance_deg)
         current = _contact_and_connect(parts, original, current, settings, floor_z_m, bounds_m)
         overlapping_after = overlapping_pairs(parts, current)
+    current, lowered_m = _rested(parts, current, settings, floor_z_m)
     report = RepairReport(
         translation_m={p.name: float(np.linalg.norm(c.apply(_centre(p)) - o.apply(_centre(p))))
                        for p, o, c in zip(parts, original, current)},
@@ -247,5 +269,6 @@ def repair_poses(parts: list[ConvexPart], poses: list[Pose], settings: RepairSet
         deepest_penetration_after_m=overlapping_after[0][2] if overlapping_after else 0.0,
         overlapping_pairs_after=tuple(pair for pair in overlapping_after if pair[2] > settings.penetration_tolerance_m),
         crossed_parts=tuple(p.name for p, bound in zip(parts, bounds_m) if bound > settings.max_translation_m),
+        lowered_m=lowered_m,
     )
     return current, report

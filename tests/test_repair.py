@@ -225,3 +225,30 @@ def test_a_floating_piece_of_several_parts_is_lowered_onto_the_standing_one():
     assert report.translation_m["post"] < 1e-9
     assert report.translation_m["board"] == pytest.approx(gap_m, abs=1e-4)
     assert report.translation_m["block"] == pytest.approx(gap_m, abs=1e-4)
+
+
+@pytest.mark.parametrize("height_m, lowered", [(0.03, True), (RepairSettings().rest_distance_m + 0.02, False)])
+def test_a_whole_assembly_hanging_above_the_floor_is_lowered_onto_it(height_m, lowered):
+    """A board on a post, in contact, the whole hanging ``height_m`` above the floor (a repaired prediction in one
+    piece whose lowest part the rounds lifted): step 6 lowers both together onto the floor, so the post stands on
+    it and the board still rests on the post; beyond ``rest_distance_m``, or with the step off, nothing moves."""
+    import trimesh
+
+    from planning.contact import FLOOR
+
+    board = ConvexPart.from_mesh("board", trimesh.creation.box((0.30, 0.20, 0.02)))
+    post = ConvexPart.from_mesh("post", trimesh.creation.box((0.03, 0.03, 0.40)))
+    identity = np.array([1.0, 0.0, 0.0, 0.0])
+    poses = [Pose(np.array([0.0, 0.0, 0.41 + height_m]), identity),  # board: on the post
+             Pose(np.array([0.0, 0.0, 0.20 + height_m]), identity)]  # post: its foot height_m above the floor
+    parts = [board, post]
+    for settings in (RepairSettings(), RepairSettings(rest_distance_m=0.0)):
+        repaired, report = repair_poses(parts, poses, settings)
+        graph = contact_graph(parts, repaired)
+        assert graph.has_edge("board", "post")
+        moves = lowered and settings.rest_distance_m > 0
+        assert graph.has_edge(FLOOR, "post") == moves
+        assert report.lowered_m == pytest.approx(height_m if moves else 0.0, abs=1e-9)
+        for before, after in zip(poses, repaired):
+            assert after.position == pytest.approx(before.position - [0.0, 0.0, report.lowered_m], abs=1e-9)
+            assert after.quat_wxyz == pytest.approx(before.quat_wxyz)
