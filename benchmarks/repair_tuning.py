@@ -7,10 +7,15 @@ training (seed 0) nor the held-out test sets (seed 1000) use.
 
 Objects: ``--count`` per category (chair, table, cabinet, or ``--categories``) and level (3, mixed), drawn as
 ``python -m perception.synth --seed 2000`` draws them, parts in a random order, one view each rendered and
-predicted as ``perception.evaluate --assemblies`` does (bundled weights, up from the picture). The network runs
+predicted as ``perception.evaluate --assemblies`` does (bundled weights, up from the picture); or with
+``--furniture DIR`` each assembly folder in DIR once (the real furniture, which the held-out benchmark reports too:
+choose settings on the procedural tuning set and use this as a check, not to tune). The network runs
 once per object; every setting then repairs the same predicted poses. The first row is the default settings.
 Columns: connectivity (parts touching another), one piece (objects whose parts form one connected whole), grounded
-(objects whose every part has a path of contacts to the floor, which a standing build needs). The pieces still
+(objects whose every part has a path of contacts to the floor, which a standing build needs), sequenced (objects
+for which :func:`planning.disassembly.plan_sequence` finds a standing order: every part leaves along a free line
+and leaves the rest supported; grasps are not checked, so this is an upper bound on what the cell's sequence stage
+finds). The pieces still
 apart after the default repair are listed by their distance to the nearest part outside them, which is what
 ``connect_distance_m`` and ``max_translation_m`` decide. Prints a Markdown table.
 """
@@ -37,8 +42,10 @@ from perception.placement import place_parts  # noqa: E402
 from perception.predict import prepare_parts, run_network  # noqa: E402
 from perception.synth import generate  # noqa: E402
 from perception.weights import BUNDLED_WEIGHTS, inference_threads, load_for_inference  # noqa: E402
+from planning.assembly import read_assembly  # noqa: E402
 from planning.collision import ConvexPart, signed_distance  # noqa: E402
 from planning.contact import contact_graph, pieces, ungrounded  # noqa: E402
+from planning.disassembly import plan_sequence  # noqa: E402
 from planning.repair import RepairSettings, repair_poses  # noqa: E402
 
 CATEGORIES = ("chair", "table", "cabinet")
@@ -58,22 +65,33 @@ def parse_setting(text: str) -> RepairSettings:
     return RepairSettings(**values)
 
 
-def predicted_objects(count: int, model, max_parts: int, categories=CATEGORIES):
-    """Yield (label, convex parts, predicted assembly_from_part, scoring context) per object."""
+def tuning_assemblies(count: int, categories=CATEGORIES, furniture: Path | None = None):
+    """Yield (label, assembly, index): ``count`` procedural objects per category and level, or with ``furniture``
+    every assembly folder in it, in name order (label "real")."""
+    if furniture is not None:
+        for i, folder in enumerate(sorted(p for p in furniture.iterdir() if (p / "assembly.json").is_file())):
+            yield "real", read_assembly(folder), i
+        return
     for category in categories:
         for level in LEVELS:
             for i in range(count):
-                assembly = generate(category, level, np.random.default_rng([TUNING_SEED, i]), f"{category}_{i}")
-                assembly = shuffled_parts(assembly, TUNING_SEED, i)
-                parts = prepare_parts([p.mesh for p in assembly.parts])
-                view = render_assembly(assembly, np.random.default_rng([1, i]))
-                bounds = assembly.bounds()
-                gt = truth_targets(view, parts, view.camera_from_assembly.apply(0.5 * (bounds[0] + bounds[1])))
-                quat, trans = run_network(model, view.rgb, parts, max_parts)
-                placement = place_parts(quat, trans, parts.normalized, parts.meshes,
-                                        image_elevation_deg=image_elevation_deg(view.rgb))
-                convex = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
-                yield f"{category} {level}", convex, placement, (parts, gt, view.visible_pixels)
+                yield (f"{category} {level}",
+                       generate(category, level, np.random.default_rng([TUNING_SEED, i]), f"{category}_{i}"), i)
+
+
+def predicted_objects(count: int, model, max_parts: int, categories=CATEGORIES, furniture: Path | None = None):
+    """Yield (label, convex parts, predicted assembly_from_part, scoring context) per object."""
+    for label, assembly, i in tuning_assemblies(count, categories, furniture):
+        assembly = shuffled_parts(assembly, TUNING_SEED, i)
+        parts = prepare_parts([p.mesh for p in assembly.parts])
+        view = render_assembly(assembly, np.random.default_rng([1, i]))
+        bounds = assembly.bounds()
+        gt = truth_targets(view, parts, view.camera_from_assembly.apply(0.5 * (bounds[0] + bounds[1])))
+        quat, trans = run_network(model, view.rgb, parts, max_parts)
+        placement = place_parts(quat, trans, parts.normalized, parts.meshes,
+                                image_elevation_deg=image_elevation_deg(view.rgb))
+        convex = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
+        yield label, convex, placement, (parts, gt, view.visible_pixels)
 
 
 def piece_gaps_m(convex: list[ConvexPart], poses) -> list[float]:
@@ -94,19 +112,24 @@ def main() -> None:
     parser.add_argument("--count", type=int, default=25, help="objects per category and level")
     parser.add_argument("--categories", nargs="+", choices=CATEGORIES, default=list(CATEGORIES),
                         help="only these categories (default: all)")
+    parser.add_argument("--furniture", type=Path, help="the assembly folders in this folder instead (e.g. "
+                        "../shared/furniture, real furniture never trained on), each once")
     parser.add_argument("--setting", action="append", default=[], help="KEY=VALUE[,KEY=VALUE] of RepairSettings "
                         "(repeatable); the defaults are always measured first")
     args = parser.parse_args()
+    if args.furniture is not None and not args.furniture.is_dir():
+        raise SystemExit(f"--furniture {args.furniture}: not a folder")
     settings = {"default": RepairSettings()} | {text: parse_setting(text) for text in args.setting}
     model, config, _, _ = load_for_inference(BUNDLED_WEIGHTS)
-    keys = ("connectivity", "one_piece", "grounded", "pa", "moved_mm", "penetration_mm", "crossing", "label")
+    keys = ("connectivity", "one_piece", "grounded", "sequenced", "pa", "moved_mm", "penetration_mm", "crossing",
+            "label")
     rows = {name: {key: [] for key in keys} for name in settings}
     gaps: list[float] = []
     start = time.perf_counter()
     with inference_threads(1):
         for label, convex, placement, (parts, gt, visible) in predicted_objects(args.count, model,
                                                                                 config.model.max_parts,
-                                                                                args.categories):
+                                                                                args.categories, args.furniture):
             for name, setting in settings.items():
                 repaired, report = repair_poses(convex, placement.assembly_from_part, setting)
                 fraction, whole = connectivity(convex, repaired)
@@ -117,6 +140,7 @@ def main() -> None:
                 row["connectivity"].append(fraction)
                 row["one_piece"].append(float(whole))
                 row["grounded"].append(float(not ungrounded(contact_graph(convex, repaired), {p.name for p in convex})))
+                row["sequenced"].append(float(plan_sequence(convex, repaired).success))
                 row["pa"].append(float(np.mean(result.correct)))
                 row["moved_mm"].append(1000 * max(report.translation_m.values()))
                 row["penetration_mm"].append(1000 * report.deepest_penetration_after_m)
@@ -125,13 +149,14 @@ def main() -> None:
                 if name == "default":
                     gaps += piece_gaps_m(convex, repaired)
             print(f"{label}: {len(rows['default']['pa'])} objects, {time.perf_counter() - start:.0f} s", flush=True)
-    print(f"\n{len(rows['default']['pa'])} objects (seed {TUNING_SEED}), {time.perf_counter() - start:.0f} s\n")
-    print("| settings | connectivity | one piece | grounded | PA repaired | largest move mean / max mm | deepest "
-          "penetration after mean / max mm | crossing after repair |")
-    print("|---|---|---|---|---|---|---|---|")
+    where = f"from {args.furniture}" if args.furniture is not None else f"(seed {TUNING_SEED})"
+    print(f"\n{len(rows['default']['pa'])} objects {where}, {time.perf_counter() - start:.0f} s\n")
+    print("| settings | connectivity | one piece | grounded | sequenced | PA repaired | largest move mean / max mm | "
+          "deepest penetration after mean / max mm | crossing after repair |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name, row in rows.items():
         print(f"| {name} | {np.mean(row['connectivity']):.3f} | {np.mean(row['one_piece']):.3f} | "
-              f"{np.mean(row['grounded']):.3f} | "
+              f"{np.mean(row['grounded']):.3f} | {np.mean(row['sequenced']):.3f} | "
               f"{np.mean(row['pa']):.3f} | {np.mean(row['moved_mm']):.1f} / {np.max(row['moved_mm']):.1f} | "
               f"{np.mean(row['penetration_mm']):.1f} / {np.max(row['penetration_mm']):.1f} | "
               f"{np.mean(row['crossing']):.3f} |")
