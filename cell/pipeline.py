@@ -218,7 +218,8 @@ class Pipeline:
             sequence = plan_assembly_sequence(build, seed=self.args.seed)
         if not sequence.success:
             self.report.setdefault("sequence_failures", []).append(
-                {"upside_down": upside_down, "reason": sequence.reason, "blocking": dict(sequence.blocking)})
+                {"upside_down": upside_down, "reason": sequence.reason, "blocking": dict(sequence.blocking),
+                 "blocking_kind": dict(sequence.blocking_kind)})
             raise StageFailed(EXIT_PLANNING, "sequence", failure_summary(sequence))
         self._record_sequence(sequence)
         self.console.say("    order: " + " > ".join(sequence.order))

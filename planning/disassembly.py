@@ -35,6 +35,12 @@ MAX_DIRECTIONS_PER_GRASP = 4  # free insertion directions tried for a grasp befo
 # where the part is clear of it, and a 60 cm side slid down the whole groove cannot
 OVERLAP_EXIT_M = 0.06
 
+# why a part could not be taken out (SequenceResult.blocking_kind)
+BLOCKED = "blocked"  # every removal direction runs into a part or the floor
+NO_GRASP = "no grasp"  # no grasp at its target among the parts placed before it
+UNSUPPORTING = "unsupporting"  # taking it out would leave parts without support (follows from the others)
+OFF_FLOOR = "off the floor"  # no path of contacts to the floor at its target: refused before any search
+
 # a grasp check: (part name, names of the parts present around it, insertion direction) -> a grasp or None
 GraspCheck = Callable[[str, frozenset, np.ndarray], object | None]
 
@@ -79,7 +85,8 @@ class SequenceResult:
     reason: str = ""
     blocking: dict[str, str] = field(default_factory=dict)  # part -> why it could not be taken out
     seconds: float = 0.0
-    states_expanded: int = 0
+    states_expanded: int = 0  # 0: refused before any search (parts off the floor)
+    blocking_kind: dict[str, str] = field(default_factory=dict)  # part -> BLOCKED, NO_GRASP, UNSUPPORTING, OFF_FLOOR
 
     @property
     def order(self) -> list[str]:
@@ -108,7 +115,8 @@ class _Planner:
         self._grasps: dict[tuple, object | None] = {}
         self.failed: set[frozenset] = set()
         self.expanded = 0
-        self.smallest_failure: tuple[frozenset, dict[str, str]] | None = None
+        # the smallest sub-assembly the search could not take apart: part -> (kind, why)
+        self.smallest_failure: tuple[frozenset, dict[str, tuple[str, str]]] | None = None
         self.timed_out = False
 
     def _own_axes(self, name: str) -> np.ndarray:
@@ -200,16 +208,16 @@ class _Planner:
             self.timed_out = True
             return None
         self.expanded += 1
-        reasons: dict[str, str] = {}
+        reasons: dict[str, tuple[str, str]] = {}
         for name in self.candidates(present):
             rest = present - {name}
             if not all_grounded(self.contacts, set(rest)):
                 lost = sorted(rest - set(nx.node_connected_component(self.contacts.subgraph(rest | {FLOOR}), FLOOR)))
-                reasons[name] = f"taking it out first leaves {', '.join(lost)} without support"
+                reasons[name] = UNSUPPORTING, f"taking it out first leaves {', '.join(lost)} without support"
                 continue
             free, blockers = self.free_directions(name, present, MAX_DIRECTIONS_PER_GRASP)
             if not free:
-                reasons[name] = "blocked in every direction (" + "; ".join(
+                reasons[name] = BLOCKED, "blocked in every direction (" + "; ".join(
                     f"{_direction_label(self.directions[name][i])} by {', '.join(b)}"
                     for i, b in list(blockers.items())[:6]) + ")"
                 continue
@@ -220,8 +228,9 @@ class _Planner:
                 if grasp is not None:
                     break
             if grasp is None:
-                reasons[name] = (f"no collision-free grasp at its target among {len(rest)} placed parts "
-                                 f"(inserted {', '.join(_direction_label(-self.directions[name][i]) for i in tried)})")
+                reasons[name] = NO_GRASP, (
+                    f"no collision-free grasp at its target among {len(rest)} placed parts "
+                    f"(inserted {', '.join(_direction_label(-self.directions[name][i]) for i in tried)})")
                 continue
             tail = self.search(rest)
             if tail is not None:
@@ -264,7 +273,7 @@ def plan_sequence(parts: list[ConvexPart], poses: list[Pose], grasp_check: Grasp
     if falling:
         return SequenceResult([], False, _falling_reason(planner.contacts, falling), {
             name: "no path of contacts to the floor at its target" for name in sorted(falling)},
-            time.perf_counter() - start, 0)
+            time.perf_counter() - start, 0, {name: OFF_FLOOR for name in sorted(falling)})
     removal = planner.search(frozenset(planner.names))
     seconds = time.perf_counter() - start
     if removal is None:
@@ -272,11 +281,12 @@ def plan_sequence(parts: list[ConvexPart], poses: list[Pose], grasp_check: Grasp
             reason = f"no sequence found within the time budget of {time_budget_s:.1f} s"
         else:
             reason = "no part can be taken out of the assembly in any order"
-        blocking = planner.smallest_failure[1] if planner.smallest_failure else {}
+        stuck = planner.smallest_failure[1] if planner.smallest_failure else {}
         if planner.smallest_failure and len(planner.smallest_failure[0]) < len(planner.names):
             reason += (f"; stuck with {len(planner.smallest_failure[0])} parts left: "
                        f"{', '.join(sorted(planner.smallest_failure[0]))}")
-        return SequenceResult([], False, reason, blocking, seconds, planner.expanded)
+        return SequenceResult([], False, reason, {name: why for name, (_, why) in stuck.items()}, seconds,
+                              planner.expanded, {name: kind for name, (kind, _) in stuck.items()})
     steps = []
     placed: set[str] = set()
     for name, k, grasp in reversed(removal):

@@ -17,7 +17,7 @@ import numpy as np
 from planning.assembly import Assembly, AssemblyError, read_assembly, read_poses
 from planning.collision import ConvexPart, box_distance, world_bounds
 from planning.convex import mesh_key
-from planning.disassembly import SequenceResult, _direction_label, plan_sequence
+from planning.disassembly import UNSUPPORTING, SequenceResult, _direction_label, plan_sequence
 from planning.fixture import PAD_HEIGHT_M, fixture_pads
 from planning.grasp import Grasp, antipodal_grasps, feasible_grasps
 from planning.gripper import clearance_gripper
@@ -125,7 +125,8 @@ def failure_summary(result: SequenceResult, limit: int = 2) -> str:
     """``result.reason`` with why the first ``limit`` parts of the sub-assembly the search could not take apart
     stayed in, the parts blocked or without a grasp before those whose removal would leave others unsupported
     (those follow from the first)."""
-    ranked = sorted(result.blocking.items(), key=lambda item: ("without support" in item[1], item[0]))
+    ranked = sorted(result.blocking.items(), key=lambda item: (result.blocking_kind.get(item[0]) == UNSUPPORTING,
+                                                               item[0]))
     if not ranked or result.states_expanded == 0:  # refused before any search (parts off the floor): said in full
         return result.reason
     why = "; ".join(f"{part!r}: {text}" for part, text in ranked[:limit])
@@ -155,6 +156,7 @@ def result_to_json(assembly: Assembly, result: SequenceResult) -> dict:
         "success": result.success,
         "reason": result.reason,
         "blocking": result.blocking,
+        "blocking_kind": result.blocking_kind,
         "seconds": round(result.seconds, 4),
         "steps": steps,
     }

@@ -263,7 +263,7 @@ def test_full_run_from_the_picture(small_chair, tiny_checkpoint, tmp_path, capsy
     if code == 3 and report["failure"]["stage"] == "sequence":  # each search that found no order, and why
         failures = report["sequence_failures"]
         assert failures[0]["upside_down"] is False and failures[0]["reason"] in report["failure"]["message"]
-        assert all(set(f["blocking"]) <= names for f in failures)
+        assert all(set(f["blocking"]) <= names and set(f["blocking_kind"]) == set(f["blocking"]) for f in failures)
     # success or failure, a run from the picture points at the prediction and at --poses
     assert "targets came from the picture" in capsys.readouterr().err
     width, height = Image.open(out / "overview.png").size  # input image | target | simulated result (if any)

@@ -15,7 +15,7 @@ from planning.assembly import Assembly, AssemblyPart, write_assembly
 from planning.collision import ConvexPart, box_distance, hull_edge_axes, signed_distance, world_bounds
 from planning.contact import FLOOR, contact_graph, support_graph
 from planning.convex import convex_pieces
-from planning.disassembly import plan_sequence
+from planning.disassembly import BLOCKED, NO_GRASP, OFF_FLOOR, UNSUPPORTING, plan_sequence
 from planning.pose import Pose
 from planning.sequence import GraspChecker, plan_assembly_sequence
 from planning.sweep import blocks, sweep_overlaps
@@ -267,6 +267,7 @@ def test_part_without_grasp_is_named():
     result = plan_assembly_sequence(assembly)
     assert not result.success
     assert "top" in result.blocking and "grasp" in result.blocking["top"]
+    assert result.blocking_kind["top"] == NO_GRASP
     assert "top" in result.reason and "8 cm" in result.reason
 
 
@@ -288,6 +289,7 @@ def test_blocked_everywhere_is_explained():
     assert not result.success
     assert "blocked in every direction" in result.blocking["inner"] and "housing" in result.blocking["inner"]
     assert "inner" in result.blocking["housing"]
+    assert result.blocking_kind == {"inner": BLOCKED, "housing": UNSUPPORTING}
     from planning.sequence import failure_summary
 
     # the blocked part first; the one whose removal would leave it unsupported follows from it
@@ -312,7 +314,7 @@ def test_parts_that_touch_nothing_leading_to_the_floor_are_named():
     parts, poses = convex_parts(stack(0.03))
     result = plan_sequence(parts, poses)
     assert not result.success and result.states_expanded == 0
-    assert set(result.blocking) == {"box", "lid"}
+    assert set(result.blocking) == {"box", "lid"} and set(result.blocking_kind.values()) == {OFF_FLOOR}
     assert "box, lid (touching each other)" in result.reason and "floor" in result.reason
     assert failure_summary(result) == result.reason  # said in full: no search ran
     assert plan_sequence(*convex_parts(stack(0.0))).success
