@@ -30,18 +30,19 @@ ANIMATION_FPS = 10.0  # its playback: 4x the simulated speed
 
 
 def crossing_failure(overlapping_pairs: tuple[tuple[str, str, float], ...], max_overlap_m: float,
-                     max_translation_m: float) -> str:
+                     max_translation_m: float) -> tuple[str, str] | None:
     """Why the repaired targets cannot be built, when two parts still overlap by more than ``max_overlap_m``
-    (metres): the deepest such pair and how many more; "" when none does. Such parts cross (a panel through a
-    panel), which no cell builds; the repair moved no crossed part more than ``max_translation_m``."""
+    (metres): (the message, naming the deepest such pair and how many more; the first part of that pair), None
+    when none does. Such parts cross (a panel through a panel), which no cell builds; the repair moved no crossed
+    part more than ``max_translation_m``."""
     deep = [pair for pair in overlapping_pairs if pair[2] > max_overlap_m]
     if not deep:
-        return ""
+        return None
     a, b, depth = deep[0]
     more = f" (and {len(deep) - 1} more pair(s) by over {max_overlap_m * 1000:.0f} mm)" if len(deep) > 1 else ""
     return (f"after repair {a!r} and {b!r} still overlap by {depth * 1000:.0f} mm{more}: the prediction puts them "
             f"through each other, deeper than the repair (at most {max_translation_m * 1000:.0f} mm per crossed part) "
-            f"can undo, and no cell builds parts through each other")
+            f"can undo, and no cell builds parts through each other", a)
 
 
 class Pipeline:
@@ -166,10 +167,8 @@ class Pipeline:
         if repair.lowered_m:
             self.console.say(f"    no part touched the floor after the repair: the whole assembly lowered "
                              f"{repair.lowered_m * 1000:.0f} mm onto it")
-        message = crossing_failure(repair.overlapping_pairs_after, MAX_GIVEN_OVERLAP_M,
+        crossed = crossing_failure(repair.overlapping_pairs_after, MAX_GIVEN_OVERLAP_M,
                                    max(settings.max_translation_m, settings.crossing_translation_m))
-        crossed = (message, next(a for a, _, depth in repair.overlapping_pairs_after
-                                 if depth > MAX_GIVEN_OVERLAP_M)) if message else None
         return assembly_with_poses(assembly, dict(zip(assembly.part_names, poses))), crossed
 
     # --- 3-7: sequence, kitting, motion, timing, simulation ---------------------------------------------------

@@ -274,10 +274,10 @@ def test_crossing_failure_names_the_deepest_pair_over_the_limit():
     from cell.pipeline import crossing_failure
 
     pairs = (("side_left", "back", 0.092), ("top", "door", 0.041), ("shelf", "back", 0.002))
-    message = crossing_failure(pairs, max_overlap_m=0.03, max_translation_m=0.05)
+    message, part = crossing_failure(pairs, max_overlap_m=0.03, max_translation_m=0.05)
     assert "'side_left' and 'back' still overlap by 92 mm (and 1 more pair(s) by over 30 mm)" in message
-    assert "at most 50 mm per crossed part" in message
-    assert crossing_failure(pairs[2:], max_overlap_m=0.03, max_translation_m=0.05) == ""
+    assert "at most 50 mm per crossed part" in message and part == "side_left"
+    assert crossing_failure(pairs[2:], max_overlap_m=0.03, max_translation_m=0.05) is None
 
 
 def test_predicted_targets_still_crossing_after_repair_are_refused():
