@@ -253,10 +253,11 @@ class Pipeline:
                 bars.append(self.console.bar(len(build.parts), "part"))
 
         seconds = self.console.stage_seconds
+        budget = {} if self.args.time_budget is None else {"time_budget_s": self.args.time_budget}
         try:
             plan = plan_cell(self.scene, build, sequence, seed=self.args.seed,
                              motion=MotionSettings(planner=self.args.planner, seed=self.args.seed),
-                             progress=progress, on_stage=on_stage, on_note=on_note)
+                             progress=progress, on_stage=on_stage, on_note=on_note, **budget)
         except PlanningFailed as exc:
             for name, value in exc.seconds.items():
                 seconds[name] = seconds.get(name, 0.0) + value

@@ -469,12 +469,13 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
     degrees (an assembly's grasps may only be reachable from one side); where a part's grasps are all beyond the
     arm's reach at its target, the jig at that turn is first slid :data:`JIG_SLIDE_M` toward the robot.
     ``CellPlan.world_from_assembly`` says where it ended up, and a failure names every placement tried. Planning
-    gives up after ``time_budget_s``."""
+    gives up after ``time_budget_s`` (seconds), and the failure then names the first placement it left untried."""
     if not sequence.success:
         raise PlanningFailed("sequence", f"no assembly sequence: {sequence.reason}")
     deadline = time.perf_counter() + time_budget_s
     with PhysicsRestCheck() as rests:  # shared by the turns: a part rests on a pedestal the same anywhere
-        return _plan_turns(scene, assembly, sequence, seed, motion, progress, on_stage, deadline, rests, on_note)
+        return _plan_turns(scene, assembly, sequence, seed, motion, progress, on_stage, deadline, rests, on_note,
+                           time_budget_s)
 
 
 def _placement_words(turn_deg: float, slide_m: float) -> str:
@@ -483,16 +484,20 @@ def _placement_words(turn_deg: float, slide_m: float) -> str:
 
 def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int,
                 motion: MotionSettings | None, progress, on_stage, deadline: float,
-                rests: PhysicsRestCheck, on_note=None) -> CellPlan:
+                rests: PhysicsRestCheck, on_note=None, time_budget_s: float = DEFAULT_TIME_BUDGET_S) -> CellPlan:
     failures = []
+    out_of_time = None  # the first placement left untried for the time budget
     spent: dict[str, float] = {}
     too_large = False  # no placement of the jig makes the kitting ring larger
     why_again = None  # the last failure, said once another placement is tried (the final error lists them all)
     for turn, slide in ((turn, slide) for turn in JIG_TURNS_DEG for slide in (0.0, JIG_SLIDE_M)):
-        if too_large or failures and time.perf_counter() > deadline:
-            break
         if slide and not (failures[-1][0] == turn and failures[-1][2].beyond_reach):
             continue  # slid only where the arm did not reach a part's target at this turn
+        if too_large:
+            break
+        if failures and time.perf_counter() > deadline:
+            out_of_time = (turn, slide)
+            break
         if why_again is not None and on_note is not None:
             on_note(why_again)
         try:
@@ -514,6 +519,10 @@ def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed
     _, _, first = failures[0]
     tried = "; ".join(f"{_placement_words(turn, slide)}: {exc}" for turn, slide, exc in failures[1:])
     message = str(first) + (f" (also tried the jig {tried})" if tried else "")
+    if out_of_time is not None:
+        message += (f"; the planning time budget of {time_budget_s:g} s ran out before the jig "
+                    f"{_placement_words(*out_of_time)} was tried (python -m cell.run --time-budget SECONDS "
+                    f"allows more)")
     error = PlanningFailed(first.stage, message, first.part)
     error.seconds = spent
     raise error

@@ -42,11 +42,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--units", choices=["m", "cm", "mm"], default="m", help="units of the mesh files (default m)")
     parser.add_argument("--checkpoint", type=Path, help="perception weights (default: the bundled ones)")
     parser.add_argument("--planner", default="RRTConnect", help="OMPL planner (default RRTConnect)")
+    parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                        help="seconds of kitting and motion planning per build (standing, then upside down) before "
+                        "the planner stops trying other placements of the jig (default 180)")
     parser.add_argument("--no-animation", action="store_true", help="skip animation.gif (faster)")
     parser.add_argument("--quiet", action="store_true", help="no progress, only the summary")
     args = parser.parse_args(argv)
     if args.image is None and args.poses is None:
         parser.error("give --image (perception predicts the poses) or --poses (target poses given)")
+    if args.time_budget is not None and not args.time_budget > 0:  # also refuses nan
+        parser.error(f"--time-budget {args.time_budget}: give a number of seconds above 0")
     return args
 
 

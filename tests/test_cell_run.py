@@ -226,6 +226,31 @@ def test_neither_image_nor_poses_is_a_usage_error(small_chair, capsys):
     assert "give --image" in capsys.readouterr().err
 
 
+def test_a_time_budget_that_is_not_a_positive_number_is_a_usage_error(small_chair, capsys):
+    for budget in ("0", "-5", "nan"):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["--parts", str(small_chair / "parts"), "--poses", str(small_chair / "assembly.json"),
+                  "--time-budget", budget])
+        assert exit_info.value.code == 2
+        assert f"--time-budget {float(budget)}" in capsys.readouterr().err
+
+
+def test_a_spent_time_budget_is_named_in_the_failure(small_chair, tmp_path, capsys):
+    """A planning budget too short for the kit to be laid out: the run fails at kitting (exit 3, the report
+    written), and the message says that the budget stopped it before the other placements of the jig, and how to
+    allow more."""
+    out = tmp_path / "out"
+    code = main(["--parts", str(small_chair / "parts"), "--poses", str(small_chair / "assembly.json"),
+                 "--out", str(out), "--quiet", "--no-animation", "--time-budget", "0.001"])
+    assert code == 3
+    report = json.loads((out / "report.json").read_text())
+    assert report["failure"]["stage"] == "kitting"
+    message = report["failure"]["message"]
+    assert "time budget ran out" in message
+    assert "the planning time budget of 0.001 s ran out before the jig turned 90 deg was tried" in message
+    assert "--time-budget SECONDS" in message
+
+
 def test_full_run_from_the_picture(small_chair, tiny_checkpoint, tmp_path, capsys):
     """Perception feeds the planner: the poses come from the network (a barely trained one here, so the plan
     may fail; what is checked is that every stage runs and reports, and nothing is half-written)."""
