@@ -87,7 +87,7 @@ def run_scaled(assembly: Assembly, work: Path, keep: Path | None = None) -> dict
         record = run_one(scaled(assembly, factor) if factor != 1.0 else assembly, work, keep)
         record["scale"] = factor
         message = (record.get("failure") or {}).get("message", "")
-        if not (any(words in message for words in TOO_BIG) or BEYOND_REACH_FIRST in message.split(" (also tried")[0]):
+        if not (any(words in message for words in TOO_BIG) or BEYOND_REACH_FIRST in message.split("\n")[0]):
             return record
     return record
 

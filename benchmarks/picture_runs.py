@@ -112,7 +112,8 @@ def main() -> None:
     for r in records:
         overlap = "-" if r["deepest_overlap_after_repair_mm"] is None else f"{r['deepest_overlap_after_repair_mm']:.0f}"
         exit_code = "timeout" if r["exit_code"] is None else r["exit_code"]
-        why = r["why"] if len(r["why"]) <= WHY_CHARS else r["why"][:WHY_CHARS - 3].rstrip() + "..."
+        first = r["why"].split("\n")[0]  # a planning failure's first line: the scene's own placement of the jig
+        why = first if len(first) <= WHY_CHARS else first[:WHY_CHARS - 3].rstrip() + "..."
         print(f"| {r['object']} | {exit_code} | {r['stage'] or '-'} | {r['seconds']:.0f} | {overlap} | "
               f"{why.replace('|', '/') or '-'} |")
     done = [r for r in records if r["exit_code"] == 0]

@@ -45,6 +45,11 @@ def crossing_failure(overlapping_pairs: tuple[tuple[str, str, float], ...], max_
             f"can undo, and no cell builds parts through each other", a)
 
 
+def indented(text: str, prefix: str) -> str:
+    """``text`` with every line after the first prefixed by ``prefix`` (a failure's further lines under its first)."""
+    return text.replace("\n", "\n" + prefix)
+
+
 class Pipeline:
     def __init__(self, scene: Scene, parts: Parts, image: np.ndarray | None, given: dict[str, Pose] | None,
                  args: argparse.Namespace, console, report: dict) -> None:
@@ -189,8 +194,8 @@ class Pipeline:
         except StageFailed as standing:
             if not self.scene.fixture.upside_down:
                 raise
-            self.console.say(f"    no plan builds it standing ({standing}); building it upside down: turned over "
-                             "about its x axis on the jig, top first")
+            self.console.say("    no plan builds it standing: " + indented(str(standing), "      ")
+                             + "\n    building it upside down: turned over about its x axis on the jig, top first")
             turned, turned_from_target = upside_down(self.target)
             records = {name: dict(entry) for name, entry in self.entries.items()}
             try:
@@ -199,8 +204,8 @@ class Pipeline:
                 for name, entry in self.entries.items():  # the report keeps the standing build's order
                     entry.clear()
                     entry.update(records[name])
-                raise StageFailed(exc.exit_code, standing.stage, f"{standing} (also tried building it upside down: "
-                                  f"{exc.stage}: {exc})", standing.part) from exc
+                raise StageFailed(exc.exit_code, standing.stage, f"{standing}\nbuilding it upside down failed too, "
+                                  f"at {exc.stage}: {indented(str(exc), '  ')}", standing.part) from exc
         self._check_limits()
         return self._simulate()
 

@@ -468,8 +468,9 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
     Where kitting or motion fail with the jig as the scene places it, the jig is turned by 90, 270 and 180
     degrees (an assembly's grasps may only be reachable from one side); where a part's grasps are all beyond the
     arm's reach at its target, the jig at that turn is first slid :data:`JIG_SLIDE_M` toward the robot.
-    ``CellPlan.world_from_assembly`` says where it ended up, and a failure names every placement tried. Planning
-    gives up after ``time_budget_s`` (seconds), and the failure then names the first placement it left untried."""
+    ``CellPlan.world_from_assembly`` says where it ended up, and a failure's message names every placement tried,
+    one line each, the scene's own first. Planning gives up after ``time_budget_s`` (seconds), and the failure
+    then names the first placement it left untried."""
     if not sequence.success:
         raise PlanningFailed("sequence", f"no assembly sequence: {sequence.reason}")
     deadline = time.perf_counter() + time_budget_s
@@ -517,13 +518,14 @@ def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed
         plan.jig_turn_deg, plan.jig_slide_m = turn, slide
         return plan
     _, _, first = failures[0]
-    tried = "; ".join(f"{_placement_words(turn, slide)}: {exc}" for turn, slide, exc in failures[1:])
-    message = str(first) + (f" (also tried the jig {tried})" if tried else "")
+    # one line per placement of the jig tried, the first (the scene's own) first
+    lines = [str(first)] + [f"also tried the jig {_placement_words(turn, slide)}: {exc.stage}: {exc}"
+                            for turn, slide, exc in failures[1:]]
     if out_of_time is not None:
-        message += (f"; the planning time budget of {time_budget_s:g} s ran out before the jig "
-                    f"{_placement_words(*out_of_time)} was tried (python -m cell.run --time-budget SECONDS "
-                    f"allows more)")
-    error = PlanningFailed(first.stage, message, first.part)
+        lines.append(f"the planning time budget of {time_budget_s:g} s ran out before the jig "
+                     f"{_placement_words(*out_of_time)} was tried (python -m cell.run --time-budget SECONDS "
+                     f"allows more)")
+    error = PlanningFailed(first.stage, "\n".join(lines), first.part)
     error.seconds = spent
     raise error
 

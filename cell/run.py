@@ -130,7 +130,7 @@ def _run(args: argparse.Namespace, console: Console) -> int:
                                "units": args.units},
                     "stages": console.stage_seconds, "trajectory_duration_s": None,
                     "world_from_assembly": scene.fixture.world_from_assembly.to_dict(), "parts": []}
-    from cell.pipeline import Pipeline
+    from cell.pipeline import Pipeline, indented
 
     pipeline = Pipeline(scene, parts, image, given, args, console, report)
     try:
@@ -140,7 +140,8 @@ def _run(args: argparse.Namespace, console: Console) -> int:
         report["failure"] = {"stage": failure.stage, "part": failure.part, "message": str(failure)}
         exit_code = failure.exit_code
         print(f"{'planning' if exit_code == EXIT_PLANNING else 'simulation check'} failed at {failure.stage}"
-              f"{' (part ' + repr(failure.part) + ')' if failure.part else ''}: {failure}", file=sys.stderr)
+              f"{' (part ' + repr(failure.part) + ')' if failure.part else ''}: {indented(str(failure), '    ')}",
+              file=sys.stderr)
     if given is None:  # success or not, the targets are only as good as the prediction
         print(PERCEPTION_HINT, file=sys.stderr)
     report["exit_code"] = exit_code
