@@ -162,6 +162,7 @@ class Pipeline:
                                  "crossed_parts": list(repair.crossed_parts),
                                  "max_translation_m": settings.max_translation_m,
                                  "crossing_translation_m": settings.crossing_translation_m,
+                                 "rest_distance_m": settings.rest_distance_m,
                                  "lowered_m": repair.lowered_m}
         if repair.crossed_parts:
             turned = "turned onto the assembly axes and " if settings.crossing_align_tolerance_deg >= 180 else ""
