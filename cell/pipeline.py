@@ -17,6 +17,7 @@ from cell.inputs import Parts
 from cell.report import assembly_with_poses, pose_json
 from cell.scene import Scene
 from planning.assembly import Assembly, AssemblyPart
+from planning.payload import DEFAULT_DENSITY_KG_M3
 from planning.pose import Pose
 
 REPAIR_GIVEN_POSES = False  # given (--poses) targets are taken as they are; predicted ones are repaired
@@ -55,6 +56,8 @@ class Pipeline:
                  args: argparse.Namespace, console, report: dict) -> None:
         self.scene, self.parts, self.image, self.given = scene, parts, image, given
         self.args, self.console, self.report = args, console, report
+        # the parts' material (kg/m3): their weight in the payload check, the planner's torque checks and the simulation
+        self.density_kg_m3 = getattr(args, "density", None) or DEFAULT_DENSITY_KG_M3
         self.target: Assembly | None = None
         self.plan = None
         self.world_from_target: Pose | None = None  # the target's assembly frame on the jig, once planned
@@ -93,8 +96,7 @@ class Pipeline:
         if crossed is not None:
             self.target = assembly
             raise StageFailed(EXIT_PLANNING, "repair", *crossed)
-        from cell.plan import out_of_reach, too_heavy
-        from planning.payload import DEFAULT_DENSITY_KG_M3
+        from cell.plan import out_of_reach, part_masses_kg, too_heavy
 
         far = out_of_reach(self.scene, assembly)
         if far:
@@ -103,14 +105,18 @@ class Pipeline:
                            f"of the Panda's reach; scale the object down (--units) or move the jig "
                            f"([fixture] world_from_assembly in the scene file)")
         payload_kg = self.scene.robot.payload_kg
-        heavy = too_heavy(assembly, payload_kg)
+        density = self.density_kg_m3
+        masses = part_masses_kg(assembly, density)
+        for name, kg in masses.items():
+            self.entries[name]["mass_kg"] = kg
+        heavy = too_heavy(masses, payload_kg)
         if heavy:
             name, kg = heavy[0]
             others = f" (and {len(heavy) - 1} more)" if len(heavy) > 1 else ""
-            raise BadInput(f"part {name!r}{others}: it weighs {kg:.1f} kg ({kg / DEFAULT_DENSITY_KG_M3 * 1000:.1f} "
-                           f"litres of wood at {DEFAULT_DENSITY_KG_M3:.0f} kg/m3), more than the Panda's rated "
-                           f"payload of {payload_kg:g} kg ([robot] payload_kg in the scene file); scale the object "
-                           f"down or split the part")
+            raise BadInput(f"part {name!r}{others}: it weighs {kg:.1f} kg ({kg / density * 1000:.1f} litres at "
+                           f"{density:.0f} kg/m3, --density), more than the Panda's rated payload of "
+                           f"{payload_kg:g} kg ([robot] payload_kg in the scene file); give the parts' real density "
+                           f"if they are lighter, scale the object down or split the part")
         self.target = assembly
 
     def _predict(self) -> dict[str, Pose]:
@@ -263,7 +269,8 @@ class Pipeline:
         try:
             plan = plan_cell(self.scene, build, sequence, seed=self.args.seed,
                              motion=MotionSettings(planner=self.args.planner, seed=self.args.seed),
-                             progress=progress, on_stage=on_stage, on_note=on_note, **budget)
+                             progress=progress, on_stage=on_stage, on_note=on_note,
+                             density_kg_m3=self.density_kg_m3, **budget)
         except PlanningFailed as exc:
             for name, value in exc.seconds.items():
                 seconds[name] = seconds.get(name, 0.0) + value
@@ -318,7 +325,8 @@ class Pipeline:
                          tuple("fixture" if n == "floor" else n for n in fasten[t.part]))
                  for t in plan.tasks]
         static = [StaticBody(o.name, o.mesh, o.world_from_obstacle) for o in plan.static]
-        settings = SimSettings(record_every_s=None if self.args.no_animation else ANIMATION_FRAME_S)
+        settings = SimSettings(record_every_s=None if self.args.no_animation else ANIMATION_FRAME_S,
+                               density_kg_m3=self.density_kg_m3)
         with self.console.stage("simulation", f"PyBullet physics at {settings.rate_hz:.0f} Hz, "
                                               f"{plan.program.duration_s:.0f} s of robot motion"):
             bar = self.console.bar(100, "%")

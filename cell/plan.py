@@ -19,6 +19,7 @@ from cell.bullet import BulletClient
 from cell.resting import PhysicsRestCheck
 from cell.robot import IKError, IKSettings, Panda, pose_rng
 from cell.scene import Scene
+from cell.simulate import SimSettings
 from cell.task import (
     INSERTION_M,
     JOINT_LIMIT_MARGIN_RAD,
@@ -48,6 +49,7 @@ from planning.kitting import (
 )
 from planning.motion import MotionSettings
 from planning.payload import (
+    DEFAULT_DENSITY_KG_M3,
     HOLDING_TORQUE_FRACTION,
     PANDA_PAYLOAD_KG,
     PANDA_TORQUE_LIMITS_NM,
@@ -122,11 +124,15 @@ def out_of_reach(scene: Scene, assembly: Assembly) -> list[tuple[str, float]]:
     return far
 
 
-def too_heavy(assembly: Assembly, payload_kg: float = PANDA_PAYLOAD_KG) -> list[tuple[str, float]]:
-    """Parts heavier than the Panda's rated payload at the parts' density (:data:`DEFAULT_DENSITY_KG_M3`, wood):
-    (name, mass in kg), heaviest first."""
-    masses = [(part.name, mass_properties(part.mesh).mass_kg) for part in assembly.parts]
-    return sorted(((name, kg) for name, kg in masses if kg > payload_kg), key=lambda item: -item[1])
+def part_masses_kg(assembly: Assembly, density_kg_m3: float = DEFAULT_DENSITY_KG_M3) -> dict[str, float]:
+    """Each part's mass (kg) at the parts' density (kg/m3; default :data:`DEFAULT_DENSITY_KG_M3`, wood)."""
+    return {part.name: mass_properties(part.mesh, density_kg_m3).mass_kg for part in assembly.parts}
+
+
+def too_heavy(masses_kg: dict[str, float], payload_kg: float = PANDA_PAYLOAD_KG) -> list[tuple[str, float]]:
+    """Of the parts' masses (:func:`part_masses_kg`), those over the Panda's rated payload: (name, mass in kg),
+    heaviest first."""
+    return sorted(((name, kg) for name, kg in masses_kg.items() if kg > payload_kg), key=lambda item: -item[1])
 
 
 def grasps_clear_at_target(grasps: list[Grasp], world_from_target: Pose, obstacles, insertion_world: np.ndarray,
@@ -457,7 +463,8 @@ def jig_placed(scene: Scene, turn_deg: float, slide_m: float = 0.0) -> Scene:
 
 def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int = 0,
               motion: MotionSettings | None = None, progress=None, on_stage=None,
-              time_budget_s: float = DEFAULT_TIME_BUDGET_S, on_note=None) -> CellPlan:
+              time_budget_s: float = DEFAULT_TIME_BUDGET_S, on_note=None,
+              density_kg_m3: float = DEFAULT_DENSITY_KG_M3) -> CellPlan:
     """Kitting layout, pick-and-place tasks and the timed program for ``assembly`` in ``scene``; raises
     :class:`PlanningFailed` naming the stage and the part. ``on_stage(name, jig_turn_deg, jig_slide_m)`` is
     called as the kitting and the motion stages begin (for each placement of the jig tried); ``progress(fraction)``
@@ -470,13 +477,16 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
     arm's reach at its target, the jig at that turn is first slid :data:`JIG_SLIDE_M` toward the robot.
     ``CellPlan.world_from_assembly`` says where it ended up, and a failure's message names every placement tried,
     one line each, the scene's own first. Planning gives up after ``time_budget_s`` (seconds), and the failure
-    then names the first placement it left untried."""
+    then names the first placement it left untried. Parts weigh their volume at ``density_kg_m3`` (kg/m3) in the
+    arm's torque checks and the kit's rest checks."""
     if not sequence.success:
         raise PlanningFailed("sequence", f"no assembly sequence: {sequence.reason}")
     deadline = time.perf_counter() + time_budget_s
-    with PhysicsRestCheck() as rests:  # shared by the turns: a part rests on a pedestal the same anywhere
-        return _plan_turns(scene, assembly, sequence, seed, motion, progress, on_stage, deadline, rests, on_note,
-                           time_budget_s)
+    payloads = {p.name: mass_properties(p.mesh, density_kg_m3) for p in assembly.parts}
+    # shared by the turns: a part rests on a pedestal the same anywhere
+    with PhysicsRestCheck(SimSettings(density_kg_m3=density_kg_m3)) as rests:
+        return _plan_turns(scene, assembly, sequence, seed, motion, progress, on_stage, deadline, rests, payloads,
+                           on_note, time_budget_s)
 
 
 def _placement_words(turn_deg: float, slide_m: float) -> str:
@@ -485,7 +495,8 @@ def _placement_words(turn_deg: float, slide_m: float) -> str:
 
 def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int,
                 motion: MotionSettings | None, progress, on_stage, deadline: float,
-                rests: PhysicsRestCheck, on_note=None, time_budget_s: float = DEFAULT_TIME_BUDGET_S) -> CellPlan:
+                rests: PhysicsRestCheck, payloads: dict[str, MassProperties], on_note=None,
+                time_budget_s: float = DEFAULT_TIME_BUDGET_S) -> CellPlan:
     failures = []
     out_of_time = None  # the first placement left untried for the time budget
     spent: dict[str, float] = {}
@@ -505,7 +516,7 @@ def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed
             stage = None if on_stage is None else (
                 lambda name, _turn=turn, _slide=slide: on_stage(name, _turn, _slide))
             plan = _plan_with_jig(jig_placed(scene, turn, slide), assembly, sequence, seed, motion, progress,
-                                  stage, deadline, rests, on_note)
+                                  stage, deadline, rests, payloads, on_note)
         except PlanningFailed as exc:
             failures.append((turn, slide, exc))
             why_again = f"{exc.stage} failed with the jig {_placement_words(turn, slide)}: {exc}"
@@ -641,14 +652,15 @@ class _PlacedBefore:
 
 def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int,
                    motion: MotionSettings | None, progress, on_stage, deadline: float,
-                   rests: PhysicsRestCheck | None = None, on_note=None) -> CellPlan:
+                   rests: PhysicsRestCheck | None = None, payloads: dict[str, MassProperties] | None = None,
+                   on_note=None) -> CellPlan:
     on_stage = on_stage or (lambda name: None)
     seconds: dict[str, float] = {}
     world_from_assembly = scene.fixture.world_from_assembly
     home_q = np.array(scene.robot.home_q)
     static = [_table(scene)] + _pads(scene, assembly)
     targets = {p.name: world_from_assembly @ p.assembly_from_part for p in assembly.parts}
-    payloads = {p.name: mass_properties(p.mesh) for p in assembly.parts}
+    payloads = payloads or {p.name: mass_properties(p.mesh) for p in assembly.parts}
 
     with BulletClient() as client:
         panda = Panda(client, scene.robot.world_from_base, scene.robot.urdf)
@@ -733,4 +745,4 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
 
 
 __all__ = ["CellPlan", "PlanningFailed", "StaticObstacle", "grasps_clear_at_target", "out_of_reach", "plan_cell",
-           "too_heavy"]
+           "part_masses_kg", "too_heavy"]

@@ -25,6 +25,7 @@ from pathlib import Path
 
 from cell.errors import EXIT_BAD_INPUT, EXIT_INTERNAL, EXIT_OK, EXIT_PLANNING, EXIT_SIMULATION, BadInput, StageFailed
 
+MAX_DENSITY_KG_M3 = 25000.0  # denser than any solid: a value in g/cm3 or a typo, not a material
 STAGES = ("perception", "repair", "sequence", "kitting", "motion", "timing", "simulation", "export")
 
 
@@ -42,6 +43,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--units", choices=["m", "cm", "mm"], default="m", help="units of the mesh files (default m)")
     parser.add_argument("--checkpoint", type=Path, help="perception weights (default: the bundled ones)")
     parser.add_argument("--planner", default="RRTConnect", help="OMPL planner (default RRTConnect)")
+    parser.add_argument("--density", type=float, default=None, metavar="KG_M3",
+                        help="the parts' material, for their weight (payload, joint torques, simulation; default 600, "
+                        "wood; honeycomb board about 300, MDF 750, aluminium 2700)")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="seconds of kitting and motion planning per build (standing, then upside down) before "
                         "the planner stops trying other placements of the jig (default 180)")
@@ -50,6 +54,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if args.image is None and args.poses is None:
         parser.error("give --image (perception predicts the poses) or --poses (target poses given)")
+    if args.density is not None and not 0 < args.density <= MAX_DENSITY_KG_M3:  # also refuses nan
+        parser.error(f"--density {args.density}: give the parts' density in kg/m3, above 0 and at most "
+                     f"{MAX_DENSITY_KG_M3:.0f}")
     if args.time_budget is not None and not args.time_budget > 0:  # also refuses nan
         parser.error(f"--time-budget {args.time_budget}: give a number of seconds above 0")
     return args
@@ -111,6 +118,7 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace, console: Console) -> int:
     from cell.inputs import InputError, load_image, load_parts, load_poses
     from cell.scene import SceneError, load_scene
+    from planning.payload import DEFAULT_DENSITY_KG_M3
 
     out = args.out or _default_out(args.parts)
     _check_out(out)
@@ -127,7 +135,7 @@ def _run(args: argparse.Namespace, console: Console) -> int:
                     "inputs": {"image": str(args.image) if args.image else None, "parts": str(args.parts),
                                "poses": str(args.poses) if args.poses else None,
                                "scene": scene.source if args.scene else "scenes/cell.toml", "seed": args.seed,
-                               "units": args.units},
+                               "units": args.units, "density_kg_m3": args.density or DEFAULT_DENSITY_KG_M3},
                     "stages": console.stage_seconds, "trajectory_duration_s": None,
                     "world_from_assembly": scene.fixture.world_from_assembly.to_dict(), "parts": []}
     from cell.pipeline import Pipeline, indented

@@ -235,6 +235,33 @@ def test_a_time_budget_that_is_not_a_positive_number_is_a_usage_error(small_chai
         assert f"--time-budget {float(budget)}" in capsys.readouterr().err
 
 
+def test_a_density_that_is_not_a_material_is_a_usage_error(small_chair, capsys):
+    for density in ("0", "-600", "nan", "60000"):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["--parts", str(small_chair / "parts"), "--poses", str(small_chair / "assembly.json"),
+                  "--density", density])
+        assert exit_info.value.code == 2
+        assert f"--density {float(density)}" in capsys.readouterr().err
+
+
+def test_the_parts_density_sets_their_weight(tmp_path, capsys):
+    """A board of 8 litres weighs 4.8 kg as wood (600 kg/m3): over the Panda's 3 kg, refused as bad input, the
+    message pointing at --density. As honeycomb board (--density 300) it weighs 2.4 kg and goes on to planning
+    (cut short here by a tiny time budget: exit 3 with a report), which records the density and each part's mass."""
+    board = _parts_folder(tmp_path / "board", {"top": trimesh.creation.box([0.8, 0.5, 0.02])})
+    poses = _poses(tmp_path / "board", [_pose_entry("top", position=(0.0, 0.0, 0.01))])
+    arguments = ["--parts", str(board), "--poses", str(poses), "--quiet", "--no-animation", "--time-budget", "0.001"]
+    assert main(arguments + ["--out", str(tmp_path / "wood")]) == 2
+    error = capsys.readouterr().err
+    assert "weighs 4.8 kg (8.0 litres at 600 kg/m3, --density)" in error
+    assert not (tmp_path / "wood").exists()
+    assert main(arguments + ["--out", str(tmp_path / "honeycomb"), "--density", "300"]) == 3
+    report = json.loads((tmp_path / "honeycomb" / "report.json").read_text())
+    assert report["inputs"]["density_kg_m3"] == 300.0
+    assert report["parts"][0]["mass_kg"] == pytest.approx(2.4, rel=1e-6)
+    assert report["failure"]["stage"] == "kitting"
+
+
 def test_a_spent_time_budget_is_named_in_the_failure(small_chair, tmp_path, capsys):
     """A planning budget too short for the kit to be laid out: the run fails at kitting (exit 3, the report
     written), and the message says that the budget stopped it before the other placements of the jig, and how to
