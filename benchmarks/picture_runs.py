@@ -2,16 +2,17 @@
 
     python benchmarks/picture_runs.py --set cabinet 3 --first 0 --count 8 --out out/picture_runs
     python benchmarks/picture_runs.py --furniture ../shared/furniture --first 0 --count 42 --out out/picture_runs
+    python benchmarks/picture_runs.py --furniture ../shared/furniture --only table_lack_0825 --density 300
 
 Each object is a held-out test object of ``benchmarks/perception_accuracy.py`` (``perception.synth``,
 ``default_rng([1000, i])``; training used seed 0), written under ``OUT/objects/``, or with ``--furniture`` an
 assembly folder of real furniture (never trained on). Its picture is rendered as a user would render it
 (``python -m cell.render OBJECT --out OUT/pictures/NAME.png --seed 0``), then the whole command runs in its own
 process on that picture and the loose parts (bundled weights, ``--no-animation``, seed 0; output under
-``OUT/runs/NAME``). Prints a Markdown table: per object the exit code, the stage that failed, the wall time, the
-deepest overlap left after the pose repair (what ``cell.run`` refuses above 30 mm) and the start of the failure's
-message. A success means the cell built the *predicted* assembly; each run's ``overview.png`` shows how far that is
-from the picture.
+``OUT/runs/NAME``; ``--density`` is passed on). Prints a Markdown table: per object the exit code, the stage
+that failed, the wall time, the deepest overlap left after the pose repair (what ``cell.run`` refuses above 30 mm)
+and the start of the failure's message. A success means the cell built the *predicted* assembly; each run's
+``overview.png`` shows how far that is from the picture.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ def held_out_object(category: str, level: str, index: int, out: Path) -> tuple[s
     return name, folder
 
 
-def run_object(name: str, folder: Path, out: Path, timeout_s: float) -> dict:
+def run_object(name: str, folder: Path, out: Path, timeout_s: float, density_kg_m3: float | None = None) -> dict:
     """Render the assembly folder ``folder`` and run the cell on its picture and loose parts; its record."""
     picture = out / "pictures" / f"{name}.png"
     picture.parent.mkdir(parents=True, exist_ok=True)
@@ -59,7 +60,8 @@ def run_object(name: str, folder: Path, out: Path, timeout_s: float) -> dict:
     try:
         result = subprocess.run([sys.executable, "-m", "cell.run", "--image", str(picture), "--parts",
                                  str(folder / "parts"), "--out", str(run_out), "--no-animation", "--quiet",
-                                 "--seed", "0"], cwd=ROOT, capture_output=True, text=True, timeout=timeout_s)
+                                 "--seed", "0"] + ([] if density_kg_m3 is None else ["--density", str(density_kg_m3)]),
+                                cwd=ROOT, capture_output=True, text=True, timeout=timeout_s)
         exit_code = result.returncode
         last_error = (result.stderr.strip().splitlines() or [""])[-1]
     except subprocess.TimeoutExpired:
@@ -86,11 +88,18 @@ def main() -> None:
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds per run")
     parser.add_argument("--furniture", type=Path, help="run these assembly folders instead (e.g. ../shared/furniture, "
                         "in name order; --first and --count select among them)")
+    parser.add_argument("--only", nargs="+", metavar="NAME", help="with --furniture: only these folders")
+    parser.add_argument("--density", type=float, help="the parts' density for python -m cell.run (kg/m3)")
     args = parser.parse_args()
     if args.furniture is not None:
         if not args.furniture.is_dir():
             raise SystemExit(f"--furniture {args.furniture}: not a folder")
         folders = sorted(p for p in args.furniture.iterdir() if (p / "assembly.json").is_file())
+        if args.only:
+            missing = sorted(set(args.only) - {f.name for f in folders})
+            if missing:
+                raise SystemExit(f"--only: no assembly folder {', '.join(missing)} in {args.furniture}")
+            folders = [f for f in folders if f.name in args.only]
         objects = [(folder.name, folder) for folder in folders[args.first:args.first + args.count]]
         if not objects:
             raise SystemExit(f"--furniture {args.furniture}: no assembly folders at --first {args.first}")
@@ -102,11 +111,12 @@ def main() -> None:
         described = f"{category} {level}, test objects {args.first}-{args.first + args.count - 1}"
     records = []
     for name, folder in objects:
-        record = run_object(name, folder, args.out, args.timeout)
+        record = run_object(name, folder, args.out, args.timeout, args.density)
         records.append(record)
         print(f"{record['object']}: exit {record['exit_code']}, {record['seconds']:.0f} s", flush=True)
     (args.out / "records.json").write_text(json.dumps(records, indent=1))
-    print(f"\nMachine: {platform.machine()}, {len(os.sched_getaffinity(0))} cores. {described}.\n")
+    density = f", --density {args.density:g}" if args.density is not None else ""
+    print(f"\nMachine: {platform.machine()}, {len(os.sched_getaffinity(0))} cores. {described}{density}.\n")
     print("| object | exit | failed stage | seconds | deepest overlap after repair, mm | why (first words) |")
     print("|---|---|---|---|---|---|")
     for r in records:
