@@ -246,9 +246,10 @@ def paired_table(results: dict, labels: list[str]) -> list[str]:
 
 def ours_details(ours: dict) -> list[str]:
     lines = ["| set | PA | PA visible | PA invisible | SC | PA repaired | SC repaired | connectivity truth / "
-             "predicted / repaired | one piece predicted / repaired | deepest penetration before / after mm | "
+             "predicted / repaired | one piece predicted / repaired | grounded predicted / repaired | "
+             "deepest penetration before / after mm | "
              "crossing after repair (deepest pair equivalent) | PA of crossing / other views | "
-             "up error mean / p95 deg | within 5 deg | inference wall mean / p95 s (CPU mean) |", "|---" * 15 + "|"]
+             "up error mean / p95 deg | within 5 deg | inference wall mean / p95 s (CPU mean) |", "|---" * 16 + "|"]
     for label, f in ours.items():
         c, up, t, r = f["connectivity"], f["up_error_deg"], f["inference_s"], f.get("after_repair", {})
         pen = f.get("deepest_penetration_m", {"before": {"mean": None}, "after": {"mean": None}})
@@ -258,7 +259,8 @@ def ours_details(ours: dict) -> list[str]:
             f"| {label} | {fmt(f['part_accuracy'])} | {fmt(f['part_accuracy_visible'])} | "
             f"{fmt(f['part_accuracy_invisible'])} | {fmt(f['shape_chamfer'], 4)} | {fmt(r.get('part_accuracy'))} | "
             f"{fmt(r.get('shape_chamfer'), 4)} | {fmt(c['truth'])} / {fmt(c['predicted'])} / {fmt(c['repaired'])} | "
-            f"{fmt(c['predicted_connected'])} / {fmt(c['repaired_connected'])} | {fmt(pen_mm[0], 1)} / "
+            f"{fmt(c['predicted_connected'])} / {fmt(c['repaired_connected'])} | "
+            f"{fmt(c.get('predicted_grounded'))} / {fmt(c.get('repaired_grounded'))} | {fmt(pen_mm[0], 1)} / "
             f"{fmt(pen_mm[1], 1)} | {fmt(crossing.get('views'))} ({fmt(crossing.get('deepest_pair_equivalent'))}) | "
             f"{fmt(crossing.get('part_accuracy_crossing'))} / {fmt(crossing.get('part_accuracy_other'))} | "
             f"{fmt(up['mean'], 1)} / {fmt(up['p95'], 1)} | {fmt(up['within_5_deg'])} | "
@@ -326,7 +328,8 @@ def main() -> None:
         first = next(iter(sets.values()))
         standalone = standalone_inference(methods["ours"], next(p for p in sorted(first.iterdir()) if p.is_dir()))
         lines += ["Ours in detail (repair: planning/repair.py; connectivity: fraction of parts touching another part; "
-                  "one piece: fraction of objects whose parts form one connected whole):", "",
+                  "one piece: fraction of objects whose parts form one connected whole; grounded: fraction of objects "
+                  "whose every part has a path of contacts to the floor, which a standing build needs):", "",
                   *ours_details(results["ours"]), "", overall(results["ours"], level3 + mixed), "",
                   f"Standalone `predict` ({standalone['parts']} parts, one thread): first call with loading "
                   f"{standalone['first_call_s']:.2f} s, warm calls {standalone['warm_median_s']:.2f} s (median), peak "

@@ -122,7 +122,9 @@ def format_extras(figures: dict) -> str:
     c, up, t = figures["connectivity"], figures["up_error_deg"], figures["inference_s"]
     lines = [f"connectivity (parts touching another): truth {c['truth']:.3f}, predicted {c['predicted']:.3f}, "
              f"repaired {c['repaired']:.3f}; objects in one piece: truth {c['truth_connected']:.3f}, "
-             f"predicted {c['predicted_connected']:.3f}, repaired {c['repaired_connected']:.3f}"] if "after_repair" \
+             f"predicted {c['predicted_connected']:.3f}, repaired {c['repaired_connected']:.3f}; every part on a "
+             f"path to the floor: truth {c['truth_grounded']:.3f}, predicted {c['predicted_grounded']:.3f}, "
+             f"repaired {c['repaired_grounded']:.3f}"] if "after_repair" \
         in figures else []
     if "deepest_penetration_m" in figures:
         before, after = figures["deepest_penetration_m"]["before"], figures["deepest_penetration_m"]["after"]

@@ -42,7 +42,7 @@ from perception.predict import PreparedParts, prepare_parts, run_network
 from perception.upright import angle_deg
 from planning.assembly import ASSEMBLY_FILE, Assembly, read_assembly
 from planning.collision import ConvexPart
-from planning.contact import FLOOR, contact_graph
+from planning.contact import FLOOR, contact_graph, ungrounded
 from planning.pose import Pose
 from planning.repair import RepairSettings, repair_poses
 
@@ -89,6 +89,12 @@ def connectivity(convex: list[ConvexPart], assembly_from_part: list[Pose]) -> tu
     return touching / graph.number_of_nodes(), nx.is_connected(graph)
 
 
+def grounded(convex: list[ConvexPart], assembly_from_part: list[Pose]) -> bool:
+    """Whether every part has a path of contacts to the floor (:func:`planning.contact.ungrounded`), which a
+    standing build needs."""
+    return not ungrounded(contact_graph(convex, assembly_from_part), {part.name for part in convex})
+
+
 CROSSING_M = MAX_GIVEN_OVERLAP_M
 """Two parts overlapping by more than this after repair (metres) cross: beyond what a connector's hole or a model's
 slack explains, the most ``python -m cell.run`` allows given targets."""
@@ -130,7 +136,8 @@ class Accumulator:
             return float(np.mean(values)) if values else float("nan")
 
         figures["connectivity"] = {key: mean_of(key) for key in (
-            "truth", "predicted", "repaired", "truth_connected", "predicted_connected", "repaired_connected")}
+            "truth", "predicted", "repaired", "truth_connected", "predicted_connected", "repaired_connected",
+            "truth_grounded", "predicted_grounded", "repaired_grounded")}
         if after.results:
             figures["after_repair"] = after.summary()
             figures["deepest_penetration_m"] = {
@@ -217,6 +224,7 @@ def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: 
         fraction, whole = connectivity(convex, poses)
         outcome.connectivity[key] = fraction
         outcome.connectivity[f"{key}_connected"] = float(whole)
+        outcome.connectivity[f"{key}_grounded"] = float(grounded(convex, poses))
     return outcome
 
 

@@ -43,6 +43,9 @@ def test_cli_writes_part_accuracy_and_the_extra_figures(checkpoint, folder, tmp_
     assert 0.0 <= figures["part_accuracy"] <= 1.0
     assert figures["objects"] == 2 and figures["samples"] == 4 and figures["views"] == 2
     assert figures["connectivity"]["truth"] == 1.0  # designed objects touch where they join
+    assert figures["connectivity"]["truth_grounded"] == 1.0  # and every part has a path to the floor
+    assert 0.0 <= figures["connectivity"]["repaired_grounded"] <= 1.0
+    assert "every part on a path to the floor" in result.stdout
     assert 0.0 <= figures["after_repair"]["part_accuracy"] <= 1.0
     assert 0.0 <= figures["up_error_deg"]["mean"] <= 90.0 and figures["inference_s"]["mean"] > 0
     assert figures["peak_memory_mb"] > 0 and len(figures["per_object"]) == 4
@@ -98,3 +101,21 @@ def test_parts_reach_the_network_in_a_random_order(checkpoint, folder):
     kept = evaluate_assemblies(model, folder, views=1, seed=7, repair=False, shuffle_parts=False)
     shuffled = evaluate_assemblies(model, folder, views=1, seed=7, repair=False)
     assert kept["parts"] == shuffled["parts"] and kept["samples"] == shuffled["samples"] == 2
+
+
+def test_grounded_needs_every_part_on_a_path_to_the_floor():
+    """The sample table as designed stands; its top lifted 5 cm touches nothing that leads to the floor."""
+    from perception.evaluate_assemblies import grounded
+    from planning.assembly import read_assembly
+    from planning.collision import ConvexPart
+    from planning.pose import Pose
+    from scenes import sample_folder
+
+    table = read_assembly(sample_folder("table"))
+    convex = [ConvexPart.from_mesh(p.name, p.mesh) for p in table.parts]
+    poses = [p.assembly_from_part for p in table.parts]
+    assert grounded(convex, poses)
+    top = max(range(len(poses)), key=lambda k: float(poses[k].apply(table.parts[k].mesh.vertices)[:, 2].max()))
+    lifted = list(poses)
+    lifted[top] = Pose(poses[top].position + [0.0, 0.0, 0.05], poses[top].quat_wxyz)
+    assert not grounded(convex, lifted)
