@@ -103,7 +103,8 @@ def main() -> None:
         objects = [(folder.name, folder) for folder in folders[args.first:args.first + args.count]]
         if not objects:
             raise SystemExit(f"--furniture {args.furniture}: no assembly folders at --first {args.first}")
-        described = f"{args.furniture.name}, folders {args.first}-{args.first + len(objects) - 1} in name order"
+        described = (f"{args.furniture.name}, " + (f"{len(objects)} folders named with --only" if args.only else
+                     f"folders {args.first}-{args.first + len(objects) - 1} in name order"))
     else:
         category, level = args.set
         objects = [held_out_object(category, level, index, args.out)
