@@ -57,7 +57,7 @@ class Pipeline:
         self.scene, self.parts, self.image, self.given = scene, parts, image, given
         self.args, self.console, self.report = args, console, report
         # the parts' material (kg/m3): their weight in the payload check, the planner's torque checks and the simulation
-        self.density_kg_m3 = getattr(args, "density", None) or DEFAULT_DENSITY_KG_M3
+        self.density_kg_m3 = args.density or DEFAULT_DENSITY_KG_M3
         self.target: Assembly | None = None
         self.plan = None
         self.world_from_target: Pose | None = None  # the target's assembly frame on the jig, once planned

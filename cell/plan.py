@@ -516,7 +516,7 @@ def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed
             stage = None if on_stage is None else (
                 lambda name, _turn=turn, _slide=slide: on_stage(name, _turn, _slide))
             plan = _plan_with_jig(jig_placed(scene, turn, slide), assembly, sequence, seed, motion, progress,
-                                  stage, deadline, rests, payloads, on_note)
+                                  stage, deadline, payloads, rests, on_note)
         except PlanningFailed as exc:
             failures.append((turn, slide, exc))
             why_again = f"{exc.stage} failed with the jig {_placement_words(turn, slide)}: {exc}"
@@ -652,7 +652,7 @@ class _PlacedBefore:
 
 def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int,
                    motion: MotionSettings | None, progress, on_stage, deadline: float,
-                   rests: PhysicsRestCheck | None = None, payloads: dict[str, MassProperties] | None = None,
+                   payloads: dict[str, MassProperties], rests: PhysicsRestCheck | None = None,
                    on_note=None) -> CellPlan:
     on_stage = on_stage or (lambda name: None)
     seconds: dict[str, float] = {}
@@ -660,7 +660,6 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
     home_q = np.array(scene.robot.home_q)
     static = [_table(scene)] + _pads(scene, assembly)
     targets = {p.name: world_from_assembly @ p.assembly_from_part for p in assembly.parts}
-    payloads = payloads or {p.name: mass_properties(p.mesh) for p in assembly.parts}
 
     with BulletClient() as client:
         panda = Panda(client, scene.robot.world_from_base, scene.robot.urdf)

@@ -361,7 +361,8 @@ def test_predicted_targets_still_crossing_after_repair_are_refused():
                      @ top)
     report: dict = {}
     pipeline = Pipeline(load_scene(), load_parts(folder / "parts"), None, None,
-                        argparse.Namespace(seed=0, checkpoint=None, poses=None), Console(quiet=True), report)
+                        argparse.Namespace(seed=0, checkpoint=None, poses=None, density=None), Console(quiet=True),
+                        report)
     with pytest.raises(StageFailed) as failure:
         pipeline.set_targets(predicted)
     assert failure.value.exit_code == EXIT_PLANNING and failure.value.stage == "repair"
@@ -374,7 +375,7 @@ def test_predicted_targets_still_crossing_after_repair_are_refused():
 
     # the true poses, given as a prediction, are repaired and accepted
     accepted = Pipeline(load_scene(), load_parts(folder / "parts"), None, None,
-                        argparse.Namespace(seed=0, checkpoint=None, poses=None), Console(quiet=True), {})
+                        argparse.Namespace(seed=0, checkpoint=None, poses=None, density=None), Console(quiet=True), {})
     accepted.set_targets(truth)
     assert accepted.target is not None
 
