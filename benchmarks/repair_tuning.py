@@ -36,7 +36,14 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__)
 from cell.pipeline import MAX_GIVEN_OVERLAP_M  # noqa: E402
 from cell.render import render_assembly  # noqa: E402
 from perception.elevation import image_elevation_deg  # noqa: E402
-from perception.evaluate_assemblies import connectivity, network_frame, shuffled_parts, truth_targets  # noqa: E402
+from perception.evaluate_assemblies import (  # noqa: E402
+    assembly_folders,
+    connectivity,
+    grounded,
+    network_frame,
+    shuffled_parts,
+    truth_targets,
+)
 from perception.metrics import evaluate_assembly  # noqa: E402
 from perception.placement import place_parts  # noqa: E402
 from perception.predict import prepare_parts, run_network  # noqa: E402
@@ -44,7 +51,7 @@ from perception.synth import generate  # noqa: E402
 from perception.weights import BUNDLED_WEIGHTS, inference_threads, load_for_inference  # noqa: E402
 from planning.assembly import read_assembly  # noqa: E402
 from planning.collision import ConvexPart, signed_distance  # noqa: E402
-from planning.contact import contact_graph, pieces, ungrounded  # noqa: E402
+from planning.contact import contact_graph, pieces  # noqa: E402
 from planning.disassembly import plan_sequence  # noqa: E402
 from planning.repair import RepairSettings, repair_poses  # noqa: E402
 
@@ -69,7 +76,7 @@ def tuning_assemblies(count: int, categories=CATEGORIES, furniture: Path | None 
     """Yield (label, assembly, index): ``count`` procedural objects per category and level, or with ``furniture``
     every assembly folder in it, in name order (label "real")."""
     if furniture is not None:
-        for i, folder in enumerate(sorted(p for p in furniture.iterdir() if (p / "assembly.json").is_file())):
+        for i, folder in enumerate(assembly_folders(furniture)):
             yield "real", read_assembly(folder), i
         return
     for category in categories:
@@ -117,8 +124,11 @@ def main() -> None:
     parser.add_argument("--setting", action="append", default=[], help="KEY=VALUE[,KEY=VALUE] of RepairSettings "
                         "(repeatable); the defaults are always measured first")
     args = parser.parse_args()
-    if args.furniture is not None and not args.furniture.is_dir():
-        raise SystemExit(f"--furniture {args.furniture}: not a folder")
+    if args.furniture is not None:
+        try:
+            assembly_folders(args.furniture)
+        except FileNotFoundError as exc:
+            raise SystemExit(f"--furniture: {exc}") from exc
     settings = {"default": RepairSettings()} | {text: parse_setting(text) for text in args.setting}
     model, config, _, _ = load_for_inference(BUNDLED_WEIGHTS)
     keys = ("connectivity", "one_piece", "grounded", "sequenced", "pa", "moved_mm", "penetration_mm", "crossing",
@@ -139,7 +149,7 @@ def main() -> None:
                 row = rows[name]
                 row["connectivity"].append(fraction)
                 row["one_piece"].append(float(whole))
-                row["grounded"].append(float(not ungrounded(contact_graph(convex, repaired), {p.name for p in convex})))
+                row["grounded"].append(float(grounded(convex, repaired)))
                 row["sequenced"].append(float(plan_sequence(convex, repaired).success))
                 row["pa"].append(float(np.mean(result.correct)))
                 row["moved_mm"].append(1000 * max(report.translation_m.values()))
