@@ -101,12 +101,13 @@ def predicted_objects(count: int, model, max_parts: int, categories=CATEGORIES, 
         yield label, convex, placement, (parts, gt, view.visible_pixels)
 
 
-def piece_gaps_m(convex: list[ConvexPart], poses) -> list[float]:
-    """For each piece but the largest (:func:`planning.contact.pieces`): the distance from its parts to the
-    nearest part outside it (metres), what ``connect_distance_m`` and the bounds decide."""
+def piece_gaps_m(convex: list[ConvexPart], poses, contacts) -> list[float]:
+    """For each piece but the largest (:func:`planning.contact.pieces` of ``contacts``, the parts' contact graph):
+    the distance from its parts to the nearest part outside it (metres), what ``connect_distance_m`` and the bounds
+    decide."""
     index = {part.name: i for i, part in enumerate(convex)}
     gaps = []
-    for piece in pieces(contact_graph(convex, poses))[1:]:
+    for piece in pieces(contacts)[1:]:
         inside = [index[name] for name in piece]
         distances = [signed_distance(convex[i], poses[i], other, poses[j], 1.0) for i in inside
                      for j, other in enumerate(convex) if other.name not in piece]
@@ -142,14 +143,15 @@ def main() -> None:
                                                                                 args.categories, args.furniture):
             for name, setting in settings.items():
                 repaired, report = repair_poses(convex, placement.assembly_from_part, setting)
-                fraction, whole = connectivity(convex, repaired)
+                contacts = contact_graph(convex, repaired)
+                fraction, whole = connectivity(contacts)
                 quat, trans = network_frame([placement.camera_from_assembly @ p for p in repaired], parts,
                                             placement.centre_camera_m)
                 result = evaluate_assembly(parts.normalized.points_norm, quat, trans, *gt, parts.classes, visible)
                 row = rows[name]
                 row["connectivity"].append(fraction)
                 row["one_piece"].append(float(whole))
-                row["grounded"].append(float(grounded(convex, repaired)))
+                row["grounded"].append(float(grounded(contacts)))
                 row["sequenced"].append(float(plan_sequence(convex, repaired).success))
                 row["pa"].append(float(np.mean(result.correct)))
                 row["moved_mm"].append(1000 * max(report.translation_m.values()))
@@ -157,7 +159,7 @@ def main() -> None:
                 row["crossing"].append(float(report.deepest_penetration_after_m > MAX_GIVEN_OVERLAP_M))
                 row["label"].append(label)
                 if name == "default":
-                    gaps += piece_gaps_m(convex, repaired)
+                    gaps += piece_gaps_m(convex, repaired, contacts)
             print(f"{label}: {len(rows['default']['pa'])} objects, {time.perf_counter() - start:.0f} s", flush=True)
     where = f"from {args.furniture}" if args.furniture is not None else f"(seed {TUNING_SEED})"
     print(f"\n{len(rows['default']['pa'])} objects {where}, {time.perf_counter() - start:.0f} s\n")

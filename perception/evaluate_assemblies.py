@@ -42,7 +42,7 @@ from perception.predict import PreparedParts, prepare_parts, run_network
 from perception.upright import angle_deg
 from planning.assembly import ASSEMBLY_FILE, Assembly, read_assembly
 from planning.collision import ConvexPart
-from planning.contact import FLOOR, contact_graph, ungrounded
+from planning.contact import FLOOR, all_grounded, contact_graph
 from planning.pose import Pose
 from planning.repair import RepairSettings, repair_poses
 
@@ -79,20 +79,20 @@ def network_frame(camera_from_part: list[Pose], parts: PreparedParts,
     return np.stack([q for q, _ in pairs]), np.stack([t for _, t in pairs])
 
 
-def connectivity(convex: list[ConvexPart], assembly_from_part: list[Pose]) -> tuple[float, bool]:
-    """(fraction of parts touching another part, whether all parts form one connected whole), floor excluded."""
-    graph = contact_graph(convex, assembly_from_part)
-    graph.remove_node(FLOOR)
+def connectivity(contacts: nx.Graph) -> tuple[float, bool]:
+    """(fraction of parts touching another part, whether all parts form one connected whole) of a
+    :func:`planning.contact.contact_graph`, floor excluded."""
+    graph = contacts.subgraph(node for node in contacts if node != FLOOR)
     if graph.number_of_nodes() <= 1:
         return 1.0, True
     touching = sum(1 for node in graph if graph.degree(node) > 0)
     return touching / graph.number_of_nodes(), nx.is_connected(graph)
 
 
-def grounded(convex: list[ConvexPart], assembly_from_part: list[Pose]) -> bool:
-    """Whether every part has a path of contacts to the floor (:func:`planning.contact.ungrounded`), which a
-    standing build needs."""
-    return not ungrounded(contact_graph(convex, assembly_from_part), {part.name for part in convex})
+def grounded(contacts: nx.Graph) -> bool:
+    """Whether every part of a :func:`planning.contact.contact_graph` has a path of contacts to the floor
+    (:func:`planning.contact.all_grounded`), which a standing build needs."""
+    return all_grounded(contacts, {node for node in contacts if node != FLOOR})
 
 
 CROSSING_M = MAX_GIVEN_OVERLAP_M
@@ -221,10 +221,11 @@ def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: 
     quat_r, trans_r = network_frame(camera_from_repaired, parts, placement.centre_camera_m)
     outcome.after = evaluate_assembly(points, quat_r, trans_r, gt_quat, gt_trans, classes, view.visible_pixels)
     for key, poses in (("truth", truth_poses), ("predicted", placement.assembly_from_part), ("repaired", repaired)):
-        fraction, whole = connectivity(convex, poses)
+        contacts = contact_graph(convex, poses)
+        fraction, whole = connectivity(contacts)
         outcome.connectivity[key] = fraction
         outcome.connectivity[f"{key}_connected"] = float(whole)
-        outcome.connectivity[f"{key}_grounded"] = float(grounded(convex, poses))
+        outcome.connectivity[f"{key}_grounded"] = float(grounded(contacts))
     return outcome
 
 

@@ -108,14 +108,15 @@ def test_grounded_needs_every_part_on_a_path_to_the_floor():
     from perception.evaluate_assemblies import grounded
     from planning.assembly import read_assembly
     from planning.collision import ConvexPart
+    from planning.contact import contact_graph
     from planning.pose import Pose
     from scenes import sample_folder
 
     table = read_assembly(sample_folder("table"))
     convex = [ConvexPart.from_mesh(p.name, p.mesh) for p in table.parts]
     poses = [p.assembly_from_part for p in table.parts]
-    assert grounded(convex, poses)
+    assert grounded(contact_graph(convex, poses))
     top = max(range(len(poses)), key=lambda k: float(poses[k].apply(table.parts[k].mesh.vertices)[:, 2].max()))
     lifted = list(poses)
     lifted[top] = Pose(poses[top].position + [0.0, 0.0, 0.05], poses[top].quat_wxyz)
-    assert not grounded(convex, lifted)
+    assert not grounded(contact_graph(convex, lifted))
