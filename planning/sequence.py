@@ -17,7 +17,7 @@ import numpy as np
 from planning.assembly import Assembly, AssemblyError, read_assembly, read_poses
 from planning.collision import ConvexPart, box_distance, world_bounds
 from planning.convex import mesh_key
-from planning.disassembly import UNSUPPORTING, SequenceResult, _direction_label, plan_sequence
+from planning.disassembly import OFF_FLOOR, UNSUPPORTING, SequenceResult, _direction_label, plan_sequence
 from planning.fixture import PAD_HEIGHT_M, fixture_pads
 from planning.grasp import Grasp, antipodal_grasps, feasible_grasps
 from planning.gripper import clearance_gripper
@@ -127,7 +127,7 @@ def failure_summary(result: SequenceResult, limit: int = 2) -> str:
     (those follow from the first)."""
     ranked = sorted(result.blocking.items(), key=lambda item: (result.blocking_kind.get(item[0]) == UNSUPPORTING,
                                                                item[0]))
-    if not ranked or result.states_expanded == 0:  # refused before any search (parts off the floor): said in full
+    if not ranked or OFF_FLOOR in result.blocking_kind.values():  # refused before any search: said in full
         return result.reason
     why = "; ".join(f"{part!r}: {text}" for part, text in ranked[:limit])
     more = f"; {len(ranked) - limit} more in report.json" if len(ranked) > limit else ""
