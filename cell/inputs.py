@@ -20,6 +20,8 @@ IMAGE_SIZE_PX = 224  # what the network sees; larger square pictures are resized
 MAX_IMAGE_SIDE_PX = 4096
 MIN_IMAGE_SIDE_PX = 64
 LARGEST_PLAUSIBLE_PART_M = 3.0  # a furniture part longer than this is a unit mistake, not furniture
+MIN_DENSITY_KG_M3 = 10.0  # lighter than the lightest foam: a value in g/cm3 (wood is 0.6 there) or a typo
+MAX_DENSITY_KG_M3 = 25000.0  # denser than any solid: a typo or a mass in grams, not a material
 
 
 class InputError(ValueError):
@@ -128,3 +130,42 @@ def load_poses(path: str | Path, part_names: list[str]) -> dict[str, Pose]:
     if extra:
         raise InputError(f"{path}: pose(s) for {', '.join(extra)}, which the parts folder does not hold")
     return poses
+
+
+def load_masses(path: str | Path, parts: Parts) -> dict[str, float]:
+    """Part masses (kg) from a JSON object ``{"part name": kg, ...}`` naming parts of the parts folder; parts it
+    leaves out weigh their volume at ``--density``. Each mass, spread over its part's volume (the mesh's, or its
+    convex hull's where the mesh is not closed), must give a density between :data:`MIN_DENSITY_KG_M3` and
+    :data:`MAX_DENSITY_KG_M3`: anything else is a unit mistake (grams, a mesh in the wrong unit) or a typo."""
+    import json
+    import math
+
+    from planning.payload import volume_m3
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: masses file does not exist" if not path.exists()
+                         else f"{path}: --masses must be a JSON file, this is a folder")
+    try:
+        masses = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path}: not a readable JSON file ({exc})") from exc
+    if not isinstance(masses, dict) or not masses:
+        raise InputError(f'{path}: expected a JSON object of part masses in kg, such as {{"{parts.names[0]}": 1.5}}')
+    unknown = sorted(set(masses) - set(parts.names))
+    if unknown:
+        raise InputError(f"{path}: mass for {', '.join(repr(n) for n in unknown)}, which the parts folder does not "
+                         f"hold (its parts: {', '.join(parts.names)})")
+    meshes = dict(zip(parts.names, parts.meshes))
+    checked = {}
+    for name, kg in masses.items():
+        if isinstance(kg, bool) or not isinstance(kg, (int, float)) or not math.isfinite(kg) or kg <= 0:
+            raise InputError(f"{path}: part {name!r}: mass {kg!r} is not a number of kilograms above 0")
+        litres = volume_m3(meshes[name]) * 1000.0
+        density = kg / litres * 1000.0
+        if not MIN_DENSITY_KG_M3 <= density <= MAX_DENSITY_KG_M3:
+            raise InputError(f"{path}: part {name!r}: {kg:g} kg in its {litres:.3g} litres is {density:.4g} kg/m3, "
+                             f"{'lighter' if density < MIN_DENSITY_KG_M3 else 'denser'} than any furniture material; "
+                             "give masses in kg (and the meshes' units with --units)")
+        checked[name] = float(kg)
+    return checked

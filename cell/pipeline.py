@@ -53,11 +53,18 @@ def indented(text: str, prefix: str) -> str:
 
 class Pipeline:
     def __init__(self, scene: Scene, parts: Parts, image: np.ndarray | None, given: dict[str, Pose] | None,
-                 args: argparse.Namespace, console, report: dict) -> None:
+                 args: argparse.Namespace, console, report: dict, masses_kg: dict[str, float] | None = None) -> None:
+        from planning.payload import volume_m3
+
         self.scene, self.parts, self.image, self.given = scene, parts, image, given
         self.args, self.console, self.report = args, console, report
-        # the parts' material (kg/m3): their weight in the payload check, the planner's torque checks and the simulation
+        # the parts' material (kg/m3): their weight in the payload check, the planner's torque checks and the
+        # simulation; a part of known mass (--masses) has that mass spread evenly over its volume
         self.density_kg_m3 = args.density or DEFAULT_DENSITY_KG_M3
+        meshes = dict(zip(parts.names, parts.meshes))
+        self.masses_kg = dict(masses_kg or {})
+        self.part_density_kg_m3 = {name: self.masses_kg[name] / volume_m3(meshes[name])
+                                   if name in self.masses_kg else self.density_kg_m3 for name in parts.names}
         self.target: Assembly | None = None
         self.plan = None
         self.world_from_target: Pose | None = None  # the target's assembly frame on the jig, once planned
@@ -105,18 +112,20 @@ class Pipeline:
                            f"of the Panda's reach; scale the object down (--units) or move the jig "
                            f"([fixture] world_from_assembly in the scene file)")
         payload_kg = self.scene.robot.payload_kg
-        density = self.density_kg_m3
-        masses = part_masses_kg(assembly, density)
+        masses = part_masses_kg(assembly, self.density_kg_m3, self.part_density_kg_m3)
         for name, kg in masses.items():
-            self.entries[name]["mass_kg"] = kg
+            self.entries[name].update(mass_kg=kg, density_kg_m3=self.part_density_kg_m3[name],
+                                      mass_from="--masses" if name in self.masses_kg else "--density")
         heavy = too_heavy(masses, payload_kg)
         if heavy:
             name, kg = heavy[0]
             others = f" (and {len(heavy) - 1} more)" if len(heavy) > 1 else ""
-            raise BadInput(f"part {name!r}{others}: it weighs {kg:.1f} kg ({kg / density * 1000:.1f} litres at "
-                           f"{density:.0f} kg/m3, --density), more than the Panda's rated payload of "
-                           f"{payload_kg:g} kg ([robot] payload_kg in the scene file); give the parts' real density "
-                           f"if they are lighter, scale the object down or split the part")
+            density = self.part_density_kg_m3[name]
+            weight = (f"its given mass is {kg:.1f} kg (--masses)" if name in self.masses_kg else
+                      f"it weighs {kg:.1f} kg ({kg / density * 1000:.1f} litres at {density:.0f} kg/m3, --density)")
+            raise BadInput(f"part {name!r}{others}: {weight}, more than the Panda's rated payload of {payload_kg:g} kg "
+                           "([robot] payload_kg in the scene file); give the parts' real density or masses "
+                           "(--masses) if they are lighter, scale the object down or split the part")
         self.target = assembly
 
     def _predict(self) -> dict[str, Pose]:
@@ -270,7 +279,8 @@ class Pipeline:
             plan = plan_cell(self.scene, build, sequence, seed=self.args.seed,
                              motion=MotionSettings(planner=self.args.planner, seed=self.args.seed),
                              progress=progress, on_stage=on_stage, on_note=on_note,
-                             density_kg_m3=self.density_kg_m3, **budget)
+                             density_kg_m3=self.density_kg_m3, part_density_kg_m3=self.part_density_kg_m3,
+                             **budget)
         except PlanningFailed as exc:
             for name, value in exc.seconds.items():
                 seconds[name] = seconds.get(name, 0.0) + value
@@ -322,7 +332,8 @@ class Pipeline:
         plan = self.plan
         fasten = {name: tuple(self.entries[name].get("fastened_to", ())) for name in self.target.part_names}
         parts = [SimPart(t.part, self.target.part(t.part).mesh, t.world_from_pick, t.world_from_target,
-                         tuple("fixture" if n == "floor" else n for n in fasten[t.part]))
+                         tuple("fixture" if n == "floor" else n for n in fasten[t.part]),
+                         self.part_density_kg_m3[t.part])
                  for t in plan.tasks]
         static = [StaticBody(o.name, o.mesh, o.world_from_obstacle) for o in plan.static]
         settings = SimSettings(record_every_s=None if self.args.no_animation else ANIMATION_FRAME_S,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,7 +32,7 @@ from cell.task import (
     TaskPlanningError,
     plan_tasks,
 )
-from planning.assembly import Assembly
+from planning.assembly import Assembly, AssemblyPart
 from planning.collision import ConvexPart, box_distance, world_bounds
 from planning.disassembly import SequenceResult
 from planning.fixture import fixture_pads
@@ -124,9 +125,18 @@ def out_of_reach(scene: Scene, assembly: Assembly) -> list[tuple[str, float]]:
     return far
 
 
-def part_masses_kg(assembly: Assembly, density_kg_m3: float = DEFAULT_DENSITY_KG_M3) -> dict[str, float]:
-    """Each part's mass (kg) at the parts' density (kg/m3; default :data:`DEFAULT_DENSITY_KG_M3`, wood)."""
-    return {part.name: mass_properties(part.mesh, density_kg_m3).mass_kg for part in assembly.parts}
+def part_masses_kg(assembly: Assembly, density_kg_m3: float = DEFAULT_DENSITY_KG_M3,
+                   part_density_kg_m3: Mapping[str, float] | None = None) -> dict[str, float]:
+    """Each part's mass (kg) at its density (kg/m3): ``part_density_kg_m3[name]`` where given, else
+    ``density_kg_m3`` (default :data:`DEFAULT_DENSITY_KG_M3`, wood)."""
+    return {part.name: part_payload(part, density_kg_m3, part_density_kg_m3).mass_kg for part in assembly.parts}
+
+
+def part_payload(part: AssemblyPart, density_kg_m3: float = DEFAULT_DENSITY_KG_M3,
+                 part_density_kg_m3: Mapping[str, float] | None = None) -> MassProperties:
+    """``part``'s mass properties at its density (kg/m3): ``part_density_kg_m3[part.name]`` where given, else
+    ``density_kg_m3``."""
+    return mass_properties(part.mesh, (part_density_kg_m3 or {}).get(part.name, density_kg_m3))
 
 
 def too_heavy(masses_kg: dict[str, float], payload_kg: float = PANDA_PAYLOAD_KG) -> list[tuple[str, float]]:
@@ -464,7 +474,8 @@ def jig_placed(scene: Scene, turn_deg: float, slide_m: float = 0.0) -> Scene:
 def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int = 0,
               motion: MotionSettings | None = None, progress=None, on_stage=None,
               time_budget_s: float = DEFAULT_TIME_BUDGET_S, on_note=None,
-              density_kg_m3: float = DEFAULT_DENSITY_KG_M3) -> CellPlan:
+              density_kg_m3: float = DEFAULT_DENSITY_KG_M3,
+              part_density_kg_m3: Mapping[str, float] | None = None) -> CellPlan:
     """Kitting layout, pick-and-place tasks and the timed program for ``assembly`` in ``scene``; raises
     :class:`PlanningFailed` naming the stage and the part. ``on_stage(name, jig_turn_deg, jig_slide_m)`` is
     called as the kitting and the motion stages begin (for each placement of the jig tried); ``progress(fraction)``
@@ -477,12 +488,15 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
     arm's reach at its target, the jig at that turn is first slid :data:`JIG_SLIDE_M` toward the robot.
     ``CellPlan.world_from_assembly`` says where it ended up, and a failure's message names every placement tried,
     one line each, the scene's own first. Planning gives up after ``time_budget_s`` (seconds), and the failure
-    then names the first placement it left untried. Parts weigh their volume at ``density_kg_m3`` (kg/m3) in the
-    arm's torque checks and the kit's rest checks."""
+    then names the first placement it left untried. Parts weigh their volume at their density (kg/m3:
+    ``part_density_kg_m3[name]`` where given, else ``density_kg_m3``) in the arm's torque checks. The kit's rest
+    checks take every part at ``density_kg_m3``: a part alone on its pedestal rests or tips the same at any
+    density (its weight and its friction scale together); only boards stacked in the kit press on each other by
+    their own weights."""
     if not sequence.success:
         raise PlanningFailed("sequence", f"no assembly sequence: {sequence.reason}")
     deadline = time.perf_counter() + time_budget_s
-    payloads = {p.name: mass_properties(p.mesh, density_kg_m3) for p in assembly.parts}
+    payloads = {p.name: part_payload(p, density_kg_m3, part_density_kg_m3) for p in assembly.parts}
     # shared by the turns: a part rests on a pedestal the same anywhere
     with PhysicsRestCheck(SimSettings(density_kg_m3=density_kg_m3)) as rests:
         return _plan_turns(scene, assembly, sequence, seed, motion, progress, on_stage, deadline, rests, payloads,
@@ -744,4 +758,4 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
 
 
 __all__ = ["CellPlan", "PlanningFailed", "StaticObstacle", "grasps_clear_at_target", "out_of_reach", "plan_cell",
-           "part_masses_kg", "too_heavy"]
+           "part_masses_kg", "part_payload", "too_heavy"]

@@ -25,7 +25,6 @@ from pathlib import Path
 
 from cell.errors import EXIT_BAD_INPUT, EXIT_INTERNAL, EXIT_OK, EXIT_PLANNING, EXIT_SIMULATION, BadInput, StageFailed
 
-MAX_DENSITY_KG_M3 = 25000.0  # denser than any solid: a value in g/cm3 or a typo, not a material
 STAGES = ("perception", "repair", "sequence", "kitting", "motion", "timing", "simulation", "export")
 
 
@@ -46,6 +45,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--density", type=float, default=None, metavar="KG_M3",
                         help="the parts' material, for their weight (payload, joint torques, simulation; default 600, "
                         "wood; honeycomb board about 300, MDF 750, aluminium 2700)")
+    parser.add_argument("--masses", type=Path, metavar="JSON",
+                        help='known part masses in kg, as a JSON object {"part name": kg, ...}; parts it leaves out '
+                        "weigh their volume at --density")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="seconds of kitting and motion planning per build (standing, then upside down) before "
                         "the planner stops trying other placements of the jig (default 180)")
@@ -54,11 +56,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if args.image is None and args.poses is None:
         parser.error("give --image (perception predicts the poses) or --poses (target poses given)")
-    if args.density is not None and not 0 < args.density <= MAX_DENSITY_KG_M3:  # also refuses nan
-        parser.error(f"--density {args.density}: give the parts' density in kg/m3, above 0 and at most "
-                     f"{MAX_DENSITY_KG_M3:.0f}")
+    from cell.inputs import MAX_DENSITY_KG_M3, MIN_DENSITY_KG_M3
+
+    if args.density is not None and not MIN_DENSITY_KG_M3 <= args.density <= MAX_DENSITY_KG_M3:  # also refuses nan
+        parser.error(f"--density {args.density:g}: give the parts' density in kg/m3, from {MIN_DENSITY_KG_M3:.0f} to "
+                     f"{MAX_DENSITY_KG_M3:.0f} (wood is 600 kg/m3, 0.6 g/cm3)")
     if args.time_budget is not None and not args.time_budget > 0:  # also refuses nan
-        parser.error(f"--time-budget {args.time_budget}: give a number of seconds above 0")
+        parser.error(f"--time-budget {args.time_budget:g}: give a number of seconds above 0")
     return args
 
 
@@ -116,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace, console: Console) -> int:
-    from cell.inputs import InputError, load_image, load_parts, load_poses
+    from cell.inputs import InputError, load_image, load_masses, load_parts, load_poses
     from cell.scene import SceneError, load_scene
     from planning.payload import DEFAULT_DENSITY_KG_M3
 
@@ -127,20 +131,26 @@ def _run(args: argparse.Namespace, console: Console) -> int:
         parts = load_parts(args.parts, args.units)
         image = load_image(args.image) if args.image is not None else None
         given = load_poses(args.poses, parts.names) if args.poses is not None else None
+        masses = load_masses(args.masses, parts) if args.masses is not None else {}
     except (InputError, SceneError) as exc:
         raise BadInput(str(exc)) from exc
     console.say(f"{len(parts.names)} parts from {args.parts}" + (f", image {args.image}" if image is not None else ""))
+    if masses:
+        rest = len(parts.names) - len(masses)
+        console.say(f"masses of {len(masses)} part(s) from {args.masses}"
+                    + (f"; {rest} other(s) at {args.density or DEFAULT_DENSITY_KG_M3:g} kg/m3" if rest else ""))
 
     report: dict = {"success": False, "exit_code": None, "failure": None,
                     "inputs": {"image": str(args.image) if args.image else None, "parts": str(args.parts),
                                "poses": str(args.poses) if args.poses else None,
                                "scene": scene.source if args.scene else "scenes/cell.toml", "seed": args.seed,
-                               "units": args.units, "density_kg_m3": args.density or DEFAULT_DENSITY_KG_M3},
+                               "units": args.units, "density_kg_m3": args.density or DEFAULT_DENSITY_KG_M3,
+                               "masses": str(args.masses) if args.masses else None},
                     "stages": console.stage_seconds, "trajectory_duration_s": None,
                     "world_from_assembly": scene.fixture.world_from_assembly.to_dict(), "parts": []}
     from cell.pipeline import Pipeline, indented
 
-    pipeline = Pipeline(scene, parts, image, given, args, console, report)
+    pipeline = Pipeline(scene, parts, image, given, args, console, report, masses)
     try:
         pipeline.targets()  # perception or --poses, then repair; bad geometry here is bad input
         exit_code = pipeline.plan_and_simulate()

@@ -4,10 +4,10 @@ The cell is rebuilt in a headless (DIRECT) client with gravity (-9.81 m/s^2 alon
 bodies (table, jig pads, pedestals) and every loose part as a dynamic compound of its convex pieces
 (:func:`planning.convex.convex_pieces`, each inset by half of :attr:`SimSettings.joint_clearance_m`: parts planned
 face to face meet with that clearance, as real ones do), its mass and inertia from its volume at
-:attr:`SimSettings.density_kg_m3`. The parts first settle for :attr:`SimSettings.settle_s` where they lie; one
-that moves more than :attr:`SimSettings.settle_tolerance_m` is reported (the start was not at rest). At rest in the
-kit, a part falls asleep until something touches it or the arm comes to pick it
-(:attr:`SimSettings.kit_sleep_threshold`).
+:attr:`SimPart.density_kg_m3` (default :attr:`SimSettings.density_kg_m3`). The parts first settle for
+:attr:`SimSettings.settle_s` where they lie; one that moves more than :attr:`SimSettings.settle_tolerance_m` is
+reported (the start was not at rest). At rest in the kit, a part falls asleep until something touches it or the
+arm comes to pick it (:attr:`SimSettings.kit_sleep_threshold`).
 
 The arm follows the program's samples at ``rate_hz`` (one physics step per sample) under position control with the
 Franka's joint torque limits. A gripper step that narrows the opening closes the fingers (position control,
@@ -108,13 +108,18 @@ DEFAULT_CAMERA = CameraConfig(eye=(1.3, -0.9, 0.9), target=(0.45, 0.1, 0.2), fov
 @dataclass(frozen=True)
 class SimPart:
     """A loose part. ``mesh``: part frame, metres. ``fasten_to``: parts (or :data:`FIXTURE`) it is fastened to once
-    released at its target."""
+    released at its target. ``density_kg_m3``: its material (None: :attr:`SimSettings.density_kg_m3`)."""
 
     name: str
     mesh: trimesh.Trimesh
     world_from_start: Pose  # where it lies when the program starts (kitting)
     world_from_target: Pose  # where the program puts it
     fasten_to: tuple[str, ...] = ()
+    density_kg_m3: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.density_kg_m3 is not None and not self.density_kg_m3 > 0:
+            raise ValueError(f"SimPart {self.name!r}: density_kg_m3 must be positive or None, got {self.density_kg_m3}")
 
 
 @dataclass(frozen=True)
@@ -377,7 +382,8 @@ class _Cell:
             for body in static_bodies:
                 self.static[body.name] = self._add_body(Path(folder), body.mesh, body.world_from_body, None)
             for part in parts:
-                props = mass_properties(part.mesh, settings.density_kg_m3)
+                density = settings.density_kg_m3 if part.density_kg_m3 is None else part.density_kg_m3
+                props = mass_properties(part.mesh, density)
                 self.part_from_com[part.name] = props.part_from_com
                 self.parts[part.name] = self._add_body(Path(folder), part.mesh, part.world_from_start, props,
                                                        inset_m=0.5 * settings.joint_clearance_m)

@@ -104,6 +104,11 @@ def mass_properties(mesh: trimesh.Trimesh, density_kg_m3: float = DEFAULT_DENSIT
                           tuple(float(max(m, 1e-9)) for m in moments))
 
 
+def volume_m3(mesh: trimesh.Trimesh) -> float:
+    """The part's volume (m^3) as :func:`mass_properties` weighs it; mesh in metres."""
+    return mass_properties(mesh, 1.0).mass_kg
+
+
 def carry_scale(payload: MassProperties, part_from_tcp: Pose, wrist_acceleration_rad_s2: float) -> float:
     """The fraction (``MIN_SCALE`` .. 1) of the wrist's acceleration limit ``wrist_acceleration_rad_s2`` that the
     payload allows, held at the grasp ``part_from_tcp`` (see the module's model)."""
@@ -259,4 +264,4 @@ class JointTorques:
 
 
 __all__ = ["DEFAULT_DENSITY_KG_M3", "JointTorques", "MOVING_TORQUE_FRACTION", "MassProperties", "PANDA_LINK_DYNAMICS",
-           "PANDA_TORQUE_LIMITS_NM", "carry_limits", "carry_scale", "mass_properties"]
+           "PANDA_TORQUE_LIMITS_NM", "carry_limits", "carry_scale", "mass_properties", "volume_m3"]

@@ -183,6 +183,21 @@ def bad_inputs(tmp: Path, chair: Path) -> dict[str, tuple[list[str], str]]:
     top = _parts_folder(tmp / "heavy", {"top": trimesh.creation.box([0.8, 0.5, 0.02])})  # 8 litres: 4.8 kg of wood
     cases["part over the payload"] = (["--parts", str(top), "--poses", str(_poses(tmp / "heavy", [
         _pose_entry("top", position=(0.0, 0.0, 0.01))]))], "weighs 4.8 kg")
+    masses = {"missing masses file": (tmp / "none.json", "none.json: masses file does not exist"),
+              "masses not JSON": ("not json {", "masses.json: not a readable JSON file"),
+              "masses not an object": ("[1.5, 2.0]", 'expected a JSON object of part masses in kg, such as {"'),
+              "mass of an unknown part": ('{"seat_1": 1.0}', "mass for 'seat_1', which the parts folder does not"),
+              "mass not a number": ('{"a": "heavy"}', "part 'a': mass 'heavy' is not a number of kilograms"),
+              "mass below zero": ('{"a": -1}', "part 'a': mass -1 is not a number of kilograms above 0"),
+              "mass in grams": ('{"a": 60}', "part 'a': 60 kg in its 0.1 litres is 6e+05 kg/m3, denser than any")}
+    (tmp / "weighed").mkdir()
+    weighed = str(_poses(tmp / "weighed", [_pose_entry("a")]))
+    for case, (text, words) in masses.items():  # BOX: 0.1 litres
+        path = text if isinstance(text, Path) else tmp / case.replace(" ", "_") / "masses.json"
+        if not isinstance(text, Path):
+            path.parent.mkdir()
+            path.write_text(text)
+        cases[case] = (["--parts", str(one), "--poses", weighed, "--masses", str(path)], words)
     cube = trimesh.creation.box([0.1, 0.1, 0.1])
     sunk = _parts_folder(tmp / "sunk", {"a": cube, "b": cube})
     cases["parts sunk into each other"] = (["--parts", str(sunk), "--poses", str(_poses(tmp / "sunk", [
@@ -194,7 +209,9 @@ def bad_inputs(tmp: Path, chair: Path) -> dict[str, tuple[list[str], str]]:
 CASES = ["missing image", "unreadable image", "grayscale image", "RGBA image", "non-square image", "huge image",
          "missing parts folder", "empty parts folder", "non-mesh file", "corrupt mesh", "empty mesh",
          "degenerate mesh", "more than 20 parts", "parts in millimetres", "NaN pose", "non-unit quaternion",
-         "missing pose", "extra pose", "target out of reach", "part over the payload", "parts sunk into each other"]
+         "missing pose", "extra pose", "target out of reach", "part over the payload", "parts sunk into each other",
+         "missing masses file", "masses not JSON", "masses not an object", "mass of an unknown part",
+         "mass not a number", "mass below zero", "mass in grams"]
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -228,13 +245,14 @@ def test_neither_image_nor_poses_is_a_usage_error(small_chair, capsys):
 
 @pytest.mark.parametrize("option, value", [("--time-budget", "0"), ("--time-budget", "-5"), ("--time-budget", "nan"),
                                            ("--density", "0"), ("--density", "-600"), ("--density", "nan"),
-                                           ("--density", "60000")])
+                                           ("--density", "60000"), ("--density", "0.6")])
 def test_a_time_budget_or_density_out_of_range_is_a_usage_error(option, value, small_chair, capsys):
-    """No time to plan, or a density no material has (60000 kg/m3: over twice that of the densest metal)."""
+    """No time to plan, or a density no material has (60000 kg/m3: over twice that of the densest metal; 0.6:
+    wood in g/cm3)."""
     with pytest.raises(SystemExit) as exit_info:
         main(["--parts", str(small_chair / "parts"), "--poses", str(small_chair / "assembly.json"), option, value])
     assert exit_info.value.code == 2
-    assert f"{option} {float(value)}" in capsys.readouterr().err
+    assert f"{option} {float(value):g}:" in capsys.readouterr().err
 
 
 def test_the_parts_density_sets_their_weight(tmp_path, capsys):
@@ -253,6 +271,19 @@ def test_the_parts_density_sets_their_weight(tmp_path, capsys):
     assert report["inputs"]["density_kg_m3"] == 300.0
     assert report["parts"][0]["mass_kg"] == pytest.approx(2.4, rel=1e-6)
     assert report["failure"]["stage"] == "kitting"
+    capsys.readouterr()
+    masses = tmp_path / "masses.json"  # weighed: 2 kg, which at the default density would be 4.8 kg
+    masses.write_text(json.dumps({"top": 2.0}))
+    assert main(arguments + ["--out", str(tmp_path / "weighed"), "--masses", str(masses)]) == 3
+    report = json.loads((tmp_path / "weighed" / "report.json").read_text())
+    assert report["inputs"]["masses"] == str(masses)
+    assert report["parts"][0]["mass_kg"] == pytest.approx(2.0, rel=1e-6)
+    assert report["parts"][0]["density_kg_m3"] == pytest.approx(250.0, rel=1e-6)
+    assert report["parts"][0]["mass_from"] == "--masses"
+    masses.write_text(json.dumps({"top": 3.5}))
+    assert main(arguments + ["--out", str(tmp_path / "too_heavy"), "--masses", str(masses)]) == 2
+    assert "part 'top': its given mass is 3.5 kg (--masses), more than the Panda's rated payload of 3 kg" in (
+        capsys.readouterr().err)
 
 
 def test_a_spent_time_budget_is_named_in_the_failure(small_chair, tmp_path, capsys):

@@ -383,6 +383,25 @@ def test_closing_fingers_seat_a_part_turned_about_any_axis_but_the_closing_one(t
     assert offset_deg == pytest.approx(turn_deg, abs=1e-6)
 
 
+def test_a_part_weighs_its_own_density_else_the_settings_one():
+    """Two boxes of 0.1 litres: one of no density of its own weighs 0.06 kg at the settings' 600 kg/m3, one of
+    2700 kg/m3 (aluminium) 0.27 kg, in the simulated cell as in the planner's payload."""
+    from cell.simulate import _Cell
+
+    settings = SimSettings()
+    size = (0.1, 0.05, 0.02)
+    wooden = SimPart("wooden", box(size), at(0.35, 0.3, 0.05), at(0.5, 0.0, 0.3))
+    metal = SimPart("metal", box(size), at(0.35, -0.3, 0.05), at(0.5, 0.1, 0.3), density_kg_m3=2700.0)
+    with BulletClient() as client:
+        cell = _Cell(client, [wooden, metal], STATIC[:1], BASE, settings)
+        mass = {name: client.pb.getDynamicsInfo(body, -1, physicsClientId=client.client_id)[0]
+                for name, body in cell.parts.items()}
+    assert mass["wooden"] == pytest.approx(0.06, rel=1e-3)
+    assert mass["metal"] == pytest.approx(0.27, rel=1e-3)
+    with pytest.raises(ValueError, match="density_kg_m3 must be positive"):
+        SimPart("foam", box(size), at(0.35, 0.3, 0.05), at(0.5, 0.0, 0.3), density_kg_m3=0.0)
+
+
 @pytest.mark.parametrize("threshold", [SimSettings().kit_sleep_threshold, None])
 def test_a_part_at_rest_in_the_kit_sleeps_until_touched(threshold):
     """A board standing on its edge on a pedestal, turned 0.3 rad about +z, settles and falls asleep (Bullet's
