@@ -92,9 +92,12 @@ def main() -> None:
     parser.add_argument("--density", type=float, help="the parts' density for python -m cell.run (kg/m3)")
     args = parser.parse_args()
     if args.furniture is not None:
-        if not args.furniture.is_dir():
-            raise SystemExit(f"--furniture {args.furniture}: not a folder")
-        folders = sorted(p for p in args.furniture.iterdir() if (p / "assembly.json").is_file())
+        from perception.evaluate_assemblies import assembly_folders
+
+        try:
+            folders = assembly_folders(args.furniture)
+        except FileNotFoundError as exc:
+            raise SystemExit(f"--furniture: {exc}") from exc
         if args.only:
             missing = sorted(set(args.only) - {f.name for f in folders})
             if missing:
