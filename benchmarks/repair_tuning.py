@@ -33,7 +33,6 @@ import numpy as np
 # Run as a script, this file's folder comes first on sys.path and its name would hide the perception package.
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
-from cell.pipeline import MAX_GIVEN_OVERLAP_M  # noqa: E402
 from cell.render import render_assembly  # noqa: E402
 from perception.elevation import image_elevation_deg  # noqa: E402
 from perception.evaluate_assemblies import (  # noqa: E402
@@ -50,7 +49,7 @@ from perception.predict import prepare_parts, run_network  # noqa: E402
 from perception.synth import generate  # noqa: E402
 from perception.weights import BUNDLED_WEIGHTS, inference_threads, load_for_inference  # noqa: E402
 from planning.assembly import read_assembly  # noqa: E402
-from planning.collision import ConvexPart, signed_distance  # noqa: E402
+from planning.collision import MAX_FITTING_OVERLAP_M, ConvexPart, signed_distance  # noqa: E402
 from planning.contact import contact_graph, pieces  # noqa: E402
 from planning.disassembly import plan_sequence  # noqa: E402
 from planning.repair import RepairSettings, repair_poses  # noqa: E402
@@ -156,7 +155,7 @@ def main() -> None:
                 row["pa"].append(float(np.mean(result.correct)))
                 row["moved_mm"].append(1000 * max(report.translation_m.values()))
                 row["penetration_mm"].append(1000 * report.deepest_penetration_after_m)
-                row["crossing"].append(float(report.deepest_penetration_after_m > MAX_GIVEN_OVERLAP_M))
+                row["crossing"].append(float(report.deepest_penetration_after_m > MAX_FITTING_OVERLAP_M))
                 row["label"].append(label)
                 if name == "default":
                     gaps += piece_gaps_m(convex, repaired, contacts)
@@ -174,7 +173,7 @@ def main() -> None:
               f"{np.mean(row['crossing']):.3f} |")
     labels = list(dict.fromkeys(rows["default"]["label"]))
     print(f"\nPer set, PA repaired / views with a pair still overlapping by more than "
-          f"{1000 * MAX_GIVEN_OVERLAP_M:.0f} mm after repair (what python -m cell.run refuses):\n")
+          f"{1000 * MAX_FITTING_OVERLAP_M:.0f} mm after repair (what python -m cell.run refuses):\n")
     print("| settings | " + " | ".join(labels) + " |")
     print("|---|" + "---|" * len(labels))
     for name, row in rows.items():

@@ -17,15 +17,11 @@ from cell.inputs import Parts
 from cell.report import assembly_with_poses, pose_json
 from cell.scene import Scene
 from planning.assembly import Assembly, AssemblyPart
+from planning.collision import MAX_FITTING_OVERLAP_M
 from planning.payload import DEFAULT_DENSITY_KG_M3
 from planning.pose import Pose
 
 REPAIR_GIVEN_POSES = False  # given (--poses) targets are taken as they are; predicted ones are repaired
-MAX_GIVEN_OVERLAP_M = 0.03
-"""Given targets may let two parts' convex pieces overlap by this much (metres), and the simulation lets them fit
-(:mod:`cell.simulate`): models of real furniture draw dowels without their holes and panels into each other, and
-convex pieces bulge (the deepest of the 42 models in ``../shared/furniture``: 23.8 mm, where the meshes overlap by
-3.7 mm). A deeper overlap is taken for a wrong pose (a part placed at another's position, a wrong unit)."""
 ANIMATION_FRAME_S = 0.4  # simulated seconds between the frames of animation.gif
 ANIMATION_FPS = 10.0  # its playback: 4x the simulated speed
 
@@ -146,12 +142,12 @@ class Pipeline:
         from planning.collision import ConvexPart, overlapping_pairs
 
         convex = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
-        pairs = overlapping_pairs(convex, [p.assembly_from_part for p in assembly.parts], MAX_GIVEN_OVERLAP_M)
+        pairs = overlapping_pairs(convex, [p.assembly_from_part for p in assembly.parts], MAX_FITTING_OVERLAP_M)
         if pairs:
             a, b, depth = pairs[0]
             more = f" ({len(pairs) - 1} more pair(s) too)" if len(pairs) > 1 else ""
             raise BadInput(f"{self.args.poses}: parts {a!r} and {b!r} overlap by {depth * 1000:.0f} mm at their "
-                           f"targets{more}, more than the {MAX_GIVEN_OVERLAP_M * 1000:.0f} mm a connector's hole or "
+                           f"targets{more}, more than the {MAX_FITTING_OVERLAP_M * 1000:.0f} mm a connector's hole or "
                            "a model's slack accounts for; check their poses (one part placed at another's position, "
                            "or a wrong unit)")
 
@@ -188,7 +184,7 @@ class Pipeline:
         if repair.lowered_m:
             self.console.say(f"    no part touched the floor after the repair: the whole assembly lowered "
                              f"{repair.lowered_m * 1000:.0f} mm onto it")
-        crossed = crossing_failure(repair.overlapping_pairs_after, MAX_GIVEN_OVERLAP_M,
+        crossed = crossing_failure(repair.overlapping_pairs_after, MAX_FITTING_OVERLAP_M,
                                    max(settings.max_translation_m, settings.crossing_translation_m))
         return assembly_with_poses(assembly, dict(zip(assembly.part_names, poses))), crossed
 

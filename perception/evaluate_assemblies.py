@@ -13,8 +13,9 @@ user's do: :func:`shuffled_parts`), run through the model exactly as
   in the predicted upright assembly frame), and the fraction of objects whose parts form one connected whole;
 - the same after :func:`planning.repair.repair_poses` (mapped back to the network's frame for PA and SC), and
   the deepest penetration between two parts before and after it (metres); the views whose parts still cross
-  after it (a pair overlapping by more than :data:`CROSSING_M`), how many of those pairs are equivalent parts
-  (the network hedges between parts it cannot tell apart), and the Part Accuracy of those views and of the others;
+  after it (a pair overlapping by more than :data:`planning.collision.MAX_FITTING_OVERLAP_M`), how many of those
+  pairs are equivalent parts (the network hedges between parts it cannot tell apart), and the Part Accuracy of
+  those views and of the others;
 - the up-axis error (degrees between the predicted and the true up direction, camera frame), the CPU time of
   inference per object (normalising the parts, the network, up and frames; not rendering or repair) and the
   process's peak resident memory.
@@ -32,7 +33,6 @@ import numpy as np
 from torch import nn
 from tqdm import tqdm
 
-from cell.pipeline import MAX_GIVEN_OVERLAP_M
 from cell.render import Appearance, AssemblyRenderer, Rendering, sample_camera
 from perception.elevation import image_elevation_deg
 from perception.metrics import AssemblyResult, MetricSummary, evaluate_assembly
@@ -41,7 +41,7 @@ from perception.placement import Placement, place_parts
 from perception.predict import PreparedParts, prepare_parts, run_network
 from perception.upright import angle_deg
 from planning.assembly import ASSEMBLY_FILE, Assembly, read_assembly
-from planning.collision import ConvexPart
+from planning.collision import MAX_FITTING_OVERLAP_M, ConvexPart
 from planning.contact import FLOOR, all_grounded, contact_graph
 from planning.pose import Pose
 from planning.repair import RepairSettings, repair_poses
@@ -95,9 +95,6 @@ def grounded(contacts: nx.Graph) -> bool:
     return all_grounded(contacts, {node for node in contacts if node != FLOOR})
 
 
-CROSSING_M = MAX_GIVEN_OVERLAP_M
-"""Two parts overlapping by more than this after repair (metres) cross: beyond what a connector's hole or a model's
-slack explains, the most ``python -m cell.run`` allows given targets."""
 
 
 @dataclass
@@ -144,8 +141,8 @@ class Accumulator:
                 key: _stats(np.array([o.penetration_m[key] for o in self.outcomes if o.penetration_m]))
                 for key in ("before", "after")}
             repaired = [o for o in self.outcomes if o.after is not None]
-            crosses = [o.deepest_overlap_after is not None and o.deepest_overlap_after["depth_m"] > CROSSING_M
-                       for o in repaired]
+            crosses = [o.deepest_overlap_after is not None
+                       and o.deepest_overlap_after["depth_m"] > MAX_FITTING_OVERLAP_M for o in repaired]
             crossing = [o for o, c in zip(repaired, crosses) if c]
             other = [o for o, c in zip(repaired, crosses) if not c]
 
@@ -153,7 +150,7 @@ class Accumulator:
                 return float(np.mean([np.mean(o.before.correct) for o in views])) if views else float("nan")
 
             figures["crossing_after_repair"] = {
-                "threshold_m": CROSSING_M, "views": len(crossing) / max(len(repaired), 1),
+                "threshold_m": MAX_FITTING_OVERLAP_M, "views": len(crossing) / max(len(repaired), 1),
                 "deepest_pair_equivalent": float(np.mean([o.deepest_overlap_after["equivalent"] for o in crossing]))
                 if crossing else float("nan"),
                 "part_accuracy_crossing": mean_part_accuracy(crossing),

@@ -21,6 +21,14 @@ from planning.convex import convex_pieces
 from planning.gripper import convex_to_fcl
 from planning.pose import Pose
 
+MAX_FITTING_OVERLAP_M = 0.03
+"""Two parts' convex pieces may overlap by this much (metres) at their targets and still be built: models of real
+furniture draw dowels without their holes and panels into each other, and convex pieces bulge (the deepest of the
+42 models in ``../shared/furniture``: 23.8 mm, where the meshes overlap by 3.7 mm). ``python -m cell.run`` accepts
+given targets up to it (the simulation lets such parts fit, :mod:`cell.simulate`); a deeper overlap is a wrong pose
+(a part placed at another's position, a wrong unit) or, in a prediction, parts crossed through each other, which
+the repair's step 5 (:attr:`planning.repair.RepairSettings.crossing_depth_m`) then tries to undo."""
+
 
 def _unique_axes(normals: np.ndarray) -> np.ndarray:
     """Face normals with duplicates and opposite pairs removed (a separating axis has no sign)."""

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from planning.collision import ConvexPart, overlapping_pairs, signed_distance
+from planning.collision import MAX_FITTING_OVERLAP_M, ConvexPart, overlapping_pairs, signed_distance
 from planning.contact import FLOOR, contact_graph, pieces
 from planning.pose import AXIS_ROTATIONS, Pose, matrix_to_quat, quat_angle_rad
 
@@ -62,7 +62,7 @@ class RepairSettings:
     connect_distance_m: float = 0.05  # a piece joins its nearest part of another within this (0: never)
     connect_passes: int = 3  # join, then contact rounds, at most this many times
     crossing_translation_m: float = 0.12  # bound for the parts of crossed pairs (<= max_translation_m: no step 5)
-    crossing_depth_m: float = 0.03  # a pair overlapping by more than this after step 4 counts as crossed
+    crossing_depth_m: float = MAX_FITTING_OVERLAP_M  # a pair overlapping by more than this after step 4 is crossed
     crossing_passes: int = 2  # widen the bound for newly crossed pairs, then contact rounds, at most this often
     crossing_align_tolerance_deg: float = 180.0  # step 5 aligns crossed parts within this (180: always)
     rest_distance_m: float = 0.05  # step 6 lowers a whole assembly hanging at most this far above the floor (0: never)

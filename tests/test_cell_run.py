@@ -14,10 +14,10 @@ import pytest
 import trimesh
 from PIL import Image
 
-from cell.pipeline import MAX_GIVEN_OVERLAP_M
 from cell.run import main
 from perception.synth import generate
 from planning.assembly import write_assembly
+from planning.collision import MAX_FITTING_OVERLAP_M
 
 # Franka's published limits, written out here on purpose (not imported from the code under test)
 VELOCITY = [2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61]
@@ -333,7 +333,7 @@ def test_full_run_from_the_picture(small_chair, tiny_checkpoint, tmp_path, capsy
         for key in ("predicted_camera_from_part", "predicted_assembly_from_part", "target_assembly_from_part"):
             assert np.isfinite(part[key]["position"]).all()
             assert abs(np.linalg.norm(part[key]["quat_wxyz"]) - 1.0) < 1e-6
-    if any(o["depth_m"] > MAX_GIVEN_OVERLAP_M for o in overlaps):  # still crossing: refused at the repair
+    if any(o["depth_m"] > MAX_FITTING_OVERLAP_M for o in overlaps):  # still crossing: refused at the repair
         assert code == 3 and report["failure"]["stage"] == "repair"
     if code == 3:
         assert report["failure"]["stage"] in ("repair", "sequence", "kitting", "motion", "timing")
@@ -367,7 +367,7 @@ def test_predicted_targets_still_crossing_after_repair_are_refused():
 
     from cell.errors import EXIT_PLANNING, StageFailed
     from cell.inputs import load_parts
-    from cell.pipeline import MAX_GIVEN_OVERLAP_M, Pipeline
+    from cell.pipeline import Pipeline
     from cell.run import Console
     from cell.scene import load_scene
     from planning.assembly import read_assembly
@@ -391,7 +391,7 @@ def test_predicted_targets_still_crossing_after_repair_are_refused():
         pipeline.set_targets(predicted)
     assert failure.value.exit_code == EXIT_PLANNING and failure.value.stage == "repair"
     deepest = report["repair"]["overlapping_pairs_after"][0]
-    assert deepest["depth_m"] > MAX_GIVEN_OVERLAP_M
+    assert deepest["depth_m"] > MAX_FITTING_OVERLAP_M
     assert failure.value.part == deepest["parts"][0]
     assert f"{deepest['parts'][0]!r} and {deepest['parts'][1]!r} still overlap by" in str(failure.value)
     assert "top" in report["repair"]["crossed_parts"]
