@@ -52,7 +52,7 @@ from planning.motion import (
 )
 from planning.payload import JointTorques, MassProperties, carry_limits
 from planning.pose import Pose
-from planning.robot_collision import RobotCollisionChecker
+from planning.robot_collision import Collision, RobotCollisionChecker
 from planning.timing import MAX_DEVIATION_RAD, JointLimits, time_path
 
 LIFT_M = 0.10  # straight lift after grasping, world +z
@@ -359,15 +359,20 @@ class CellWorld:
         if isinstance(valid, _AllValid):  # the first of its checks that refuses q
             refusing = next((check for check in valid.checks if not check(q)), None)
             return "no collision there" if refusing is None else self._collision_words(q, refusing)
-        checker, ignore, held_ignore, hand_ignore = (
-            (valid.checker, valid.ignore, valid.held_ignore, valid.hand_ignore) if isinstance(valid, _Validity)
-            else (self.checker, frozenset(), frozenset(), frozenset()))
         load = valid.load if isinstance(valid, _Validity) else None
         if load is not None and not load.within(np.asarray(q, dtype=np.float64)[None])[0]:
             return load.words(q)
-        hit = checker.first_collision(np.asarray(q, dtype=np.float64), ignore=ignore, held_ignore=held_ignore,
-                                      hand_ignore=hand_ignore)
+        hit = self._first_collision(q, valid)
         return "no collision there" if hit is None else str(hit)
+
+    def _first_collision(self, q: np.ndarray, valid=None) -> Collision | None:
+        """The first colliding pair at ``q`` as ``valid`` (a :class:`_Validity`) sees it (the exact world when
+        ``valid`` is something else), the arm's load aside."""
+        checker, ignore, held_ignore, hand_ignore = (
+            (valid.checker, valid.ignore, valid.held_ignore, valid.hand_ignore) if isinstance(valid, _Validity)
+            else (self.checker, frozenset(), frozenset(), frozenset()))
+        return checker.first_collision(np.asarray(q, dtype=np.float64), ignore=ignore, held_ignore=held_ignore,
+                                       hand_ignore=hand_ignore)
 
     def transit(self, start_q: np.ndarray, goal_q: np.ndarray, valid, part: str, stage: str) -> np.ndarray:
         """An OMPL path, re-checked every :data:`DENSE_CHECK_RAD` (OMPL checks its edges at its resolution and
@@ -651,7 +656,8 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
                 valid = world.validity()
             if not valid(insertion[0]):
                 raise TaskPlanningError("goal_in_collision", name, "move to the target", "the pre-place "
-                                        f"configuration collides ({world._collision_words(insertion[0], valid)})")
+                                        f"configuration collides ({world._collision_words(insertion[0], valid)})"
+                                        + _still_inside_words(world, name, task, insertion[0], valid))
             exact = valid
             valid = _among_neighbours_validity(world, task, exact, (lift[-1], insertion[0]))
             try:
@@ -725,6 +731,20 @@ def _insertion(world: CellWorld, place_q: np.ndarray, world_from_tcp_place: Pose
     back = -direction * INSERTION_M + shift_m
     return world.straight_line(place_q, world_from_tcp_place, back, valid, part, "insertion",
                                INSERTION_STEP_M)[::-1], ()
+
+
+def _still_inside_words(world: CellWorld, part: str, task: PartTask, pre_q: np.ndarray, valid) -> str:
+    """Why a pre-place pose collides, where the held ``part`` meets a neighbour it touches at its target (as
+    ``valid`` sees it): it overlaps that neighbour along its whole way in, so the targets put the two into each
+    other ("" otherwise)."""
+    hit = world._first_collision(pre_q, valid)
+    if hit is None or hit.a != f"held {part}" or hit.b not in task.touches_at_target:
+        return ""
+    direction = ", ".join(f"{v:+.2f}" for v in task.insertion_direction)
+    return (f": {part!r} still overlaps {hit.b!r}, a neighbour at its target, {100 * INSERTION_M:.0f} cm back along "
+            f"its insertion direction ({direction}, world), and no straight lead-in up to "
+            f"{100 * LEAD_IN_STEPS_M[-1]:.0f} cm farther back clears it: the target poses put the two parts into "
+            "each other along its way in")
 
 
 def _lead_in(world: CellWorld, part: str, grasp: Grasp, pre_q: np.ndarray, direction: np.ndarray, clear,

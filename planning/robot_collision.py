@@ -76,6 +76,15 @@ class Collision:
     a: str
     b: str
 
+    def __str__(self) -> str:
+        """In words: ``the held part 'seat' meets 'leg_1'``, ``panda_link5 meets 'table'``."""
+        def words(name: str) -> str:
+            if name.startswith("held "):
+                return f"the held part {name[len('held '):]!r}"
+            return name if name.startswith("panda_") else repr(name)
+
+        return f"{words(self.a)} meets {words(self.b)}"
+
 
 @dataclass(frozen=True)
 class _CompiledChain:

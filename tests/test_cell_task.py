@@ -201,6 +201,29 @@ def test_an_insertion_starts_farther_back_where_its_pre_place_lies_between_neigh
     assert np.max(np.abs(tcp[:, :2] - tcp[-1, :2])) < 1e-4  # straight down the insertion
 
 
+def test_a_part_inside_its_neighbour_all_the_way_in_is_named_with_the_overlap(panda):
+    """A block whose target overlaps a 50 cm rail by 1 cm, inserted along the rail: 8 cm back, and at every
+    straight lead-in up to 24 cm farther back, it is still inside the rail. The plan fails at the pre-place pose,
+    and the message names the rail, the insertion direction and that the poses put the two into each other."""
+    block = trimesh.creation.box((0.03, 0.03, 0.06))
+    rail = trimesh.creation.box((0.5, 0.03, 0.03))
+    down_tcp, up = [0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
+    static = {"rail": (ConvexPart.from_mesh("rail", rail), Pose([0.45, 0.0, 0.2], up))}
+    world = CellWorld(panda, Pose.identity(), static, {"block": ConvexPart.from_mesh("block", block)},
+                      np.random.default_rng(0))
+    grasp = Grasp(Pose([0.0, 0.0, 0.02], down_tcp), width_m=0.03, opening_m=0.04, score=1.0, centroid_score=1.0,
+                  contact_score=1.0)  # near the block's top, the fingers above the rail
+    along = np.array([1.0, 0.0, 0.0])
+    task = PartTask("block", Pose([0.35, 0.3, 0.03], up), Pose([0.6, 0.0, 0.235], up), grasp, along, ("rail",),
+                    "pad")
+    with pytest.raises(TaskPlanningError) as failure:
+        plan_tasks(world, [task], np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8]))
+    assert failure.value.kind == "goal_in_collision"
+    assert ("the held part 'block' meets 'rail'): 'block' still overlaps 'rail', a neighbour at its target, 8 cm "
+            "back along its insertion direction (+1.00, +0.00, +0.00, world), and no straight lead-in up to 24 cm "
+            "farther back clears it: the target poses put the two parts into each other") in str(failure.value)
+
+
 def test_an_insertion_between_tall_posts_starts_beside_them(panda):
     """A 30 cm panel whose ends go between two posts 60 cm tall, 0.5 mm off its end faces: from straight above it
     would be between them for 32 cm, farther than any lead-in; it comes in from the side, 4 cm across, and stops
