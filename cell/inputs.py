@@ -162,6 +162,9 @@ def load_masses(path: str | Path, parts: Parts) -> dict[str, float]:
         if isinstance(kg, bool) or not isinstance(kg, (int, float)) or not math.isfinite(kg) or kg <= 0:
             raise InputError(f"{path}: part {name!r}: mass {kg!r} is not a number of kilograms above 0")
         litres = volume_m3(meshes[name]) * 1000.0
+        if not litres > 0:
+            raise InputError(f"{path}: part {name!r} has no volume (a flat or open mesh), so its mass cannot be "
+                             "spread over it; give a closed mesh")
         density = kg / litres * 1000.0
         if not MIN_DENSITY_KG_M3 <= density <= MAX_DENSITY_KG_M3:
             raise InputError(f"{path}: part {name!r}: {kg:g} kg in its {litres:.3g} litres is {density:.4g} kg/m3, "

@@ -111,6 +111,16 @@ def stretched(assembly: Assembly, factors_xyz) -> Assembly:
 # ---------------------------------------------------------------------------------------------------------
 
 
+FLAT_RELATIVE_THICKNESS = 1e-6  # a mesh thinner than this fraction of its size is a flat sheet (rounding aside)
+
+
+def _thickness(vertices: np.ndarray) -> float:
+    """How far the points ``vertices`` (M, 3) spread along their least principal axis (their units)."""
+    centred = vertices - vertices.mean(axis=0)
+    least = np.linalg.svd(centred, full_matrices=False)[2][-1]
+    return float(np.ptp(centred @ least))
+
+
 def load_mesh(path: Path, where: str, scale_to_metres: float = 1.0) -> trimesh.Trimesh:
     """Load and validate one mesh file (metres after ``scale_to_metres``); :class:`AssemblyError` names ``where``."""
     if not path.is_file():
@@ -125,6 +135,9 @@ def load_mesh(path: Path, where: str, scale_to_metres: float = 1.0) -> trimesh.T
         raise AssemblyError(f"{where}: mesh file {path} has non-finite vertex coordinates")
     if loaded.area <= 0 or float(np.max(loaded.extents)) <= 0:
         raise AssemblyError(f"{where}: mesh file {path} is degenerate (zero area)")
+    if _thickness(np.asarray(loaded.vertices)) <= FLAT_RELATIVE_THICKNESS * float(np.max(loaded.extents)):
+        raise AssemblyError(f"{where}: mesh file {path} is flat (no thickness), so it has no volume to weigh or "
+                            "to collide with; give the part as a solid (a board with its thickness)")
     if scale_to_metres != 1.0:
         loaded.apply_scale(scale_to_metres)
     return loaded
