@@ -22,6 +22,7 @@ from planning.payload import DEFAULT_DENSITY_KG_M3
 from planning.pose import Pose
 
 REPAIR_GIVEN_POSES = False  # given (--poses) targets are taken as they are; predicted ones are repaired
+MAX_BELOW_FLOOR_M = 0.001  # given targets may reach this far under the floor (z = 0; rounding, a model's feet)
 ANIMATION_FRAME_S = 0.4  # simulated seconds between the frames of animation.gif
 ANIMATION_FPS = 10.0  # its playback: 4x the simulated speed
 
@@ -89,7 +90,7 @@ class Pipeline:
                             [AssemblyPart(n, m, poses[n], f"parts/{f.name}")
                              for n, m, f in zip(self.parts.names, self.parts.meshes, self.parts.files)])
         if self.given is not None:
-            self._check_given_overlaps(assembly)
+            self._check_given_targets(assembly)
         with self.console.stage("repair", "contacts, interpenetration, alignment"):
             assembly, crossed = self._repair(assembly)
         for part in assembly.parts:
@@ -138,9 +139,16 @@ class Pipeline:
             self.entries[name]["predicted_assembly_from_part"] = pose_json(prediction.assembly_from_part[name])
         return dict(prediction.assembly_from_part)
 
-    def _check_given_overlaps(self, assembly: Assembly) -> None:
+    def _check_given_targets(self, assembly: Assembly) -> None:
+        """Given targets put no part under the floor and no two parts into each other (:class:`BadInput`)."""
         from planning.collision import ConvexPart, overlapping_pairs
 
+        lowest = {p.name: float(p.assembly_from_part.apply(p.mesh.vertices)[:, 2].min()) for p in assembly.parts}
+        name = min(lowest, key=lowest.get)
+        if lowest[name] < -MAX_BELOW_FLOOR_M:
+            raise BadInput(f"{self.args.poses}: part {name!r} reaches {-lowest[name] * 1000:.0f} mm below the floor; "
+                           "in the assembly frame the floor is z = 0 and the object stands on it, so check its pose "
+                           "(or move every part up by that much)")
         convex = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
         pairs = overlapping_pairs(convex, [p.assembly_from_part for p in assembly.parts], MAX_FITTING_OVERLAP_M)
         if pairs:

@@ -178,6 +178,9 @@ def bad_inputs(tmp: Path, chair: Path) -> dict[str, tuple[list[str], str]]:
     (tmp / "extra").mkdir()
     cases["extra pose"] = (["--parts", str(one), "--poses", str(_poses(tmp / "extra", [
         _pose_entry("a"), _pose_entry("z")]))], "pose(s) for z")
+    (tmp / "under").mkdir()
+    cases["part under the floor"] = (["--parts", str(one), "--poses", str(_poses(tmp / "under", [
+        _pose_entry("a", position=(0.0, 0.0, -0.2))]))], "part 'a' reaches 210 mm below the floor")
     (tmp / "far").mkdir()
     tall = _parts_folder(tmp / "tall", {"pole": trimesh.creation.box([0.05, 0.05, 0.1])})
     cases["target out of reach"] = (["--parts", str(tall), "--poses", str(_poses(tmp / "far", [
@@ -213,7 +216,8 @@ CASES = ["missing image", "unreadable image", "grayscale image", "RGBA image", "
          "missing parts folder", "empty parts folder", "non-mesh file", "corrupt mesh", "empty mesh",
          "degenerate mesh", "flat mesh", "more than 20 parts", "parts in millimetres", "NaN pose",
          "non-unit quaternion",
-         "missing pose", "extra pose", "target out of reach", "part over the payload", "parts sunk into each other",
+         "missing pose", "extra pose", "part under the floor", "target out of reach", "part over the payload",
+         "parts sunk into each other",
          "missing masses file", "masses not JSON", "masses not an object", "mass of an unknown part",
          "mass not a number", "mass below zero", "mass in grams"]
 
