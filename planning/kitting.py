@@ -588,7 +588,7 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
         if failed is None:
             break
         message, kind = _why_not(failed, mesh_of[failed], candidates[failed], grasp_ok_at_target, area,
-                                 layout.prefer, failed in layout.unrested)
+                                 layout.prefer, failed in layout.unrested, failed not in layout.picked)
         if kind != NO_PLACE or failed in layout.unrested or failed in first or len(first) >= LAYOUT_RETRIES:
             raise KittingError(message, kind, failed)
         first.append(failed)
@@ -620,6 +620,7 @@ class _Layout:
         self.rests = None  # physics check (loose bodies, fixed bodies) -> bool, see plan_kitting
         self.settles = None  # physics (loose bodies, fixed bodies) -> where they come to rest, see plan_kitting
         self.unrested: set[str] = set()  # parts with no pose that rests on a pedestal
+        self.picked: set[str] = set()  # parts that some place tried lets the hand grasp clear of their support
         self.fingers_freed: set[tuple] = set()  # (part, rest pose) whose pedestal :meth:`_free_fingers` checked
 
     def rank(self, name: str) -> int:
@@ -954,6 +955,8 @@ class _Layout:
         tips = _tips_under(mesh, world_from_part)
         at_pick = {_grasp_key(g) for g in _pickable(grasps, world_from_part, own, self.area.table_z_m,
                                                      self.obstacles_at_pick(name, corners)) if not tips(g)}
+        if at_pick or (name not in self.picked and _pickable(grasps, world_from_part, own, self.area.table_z_m)):
+            self.picked.add(name)  # some grasp clears its support here (the other slots' bodies aside)
         # the support (own pedestal, or the board under it) is left out: the grasp check covered the hand
         present = [o for slot in self.slots if base is None or slot.part != base.part
                    for o in self._bodies(slot, name)]
@@ -1166,8 +1169,10 @@ def _grasp_key(grasp: Grasp) -> tuple:
     return grasp_pose_key(grasp) + (round(grasp.opening_m, 9), round(grasp.opening_at_pick_m, 9))
 
 
-def _why_not(name, mesh, grasps, grasp_ok_at_target, area, prefer, unrested: bool = False) -> tuple[str, str]:
-    """(message, :class:`KittingError` kind) of why part ``name`` found no slot."""
+def _why_not(name, mesh, grasps, grasp_ok_at_target, area, prefer, unrested: bool = False,
+             unpicked: bool = False) -> tuple[str, str]:
+    """(message, :class:`KittingError` kind) of why part ``name`` found no slot; ``unpicked``: at no place tried
+    did any grasp clear the part's support."""
     if not grasps:
         return f"part {name!r}: no grasp at all", NO_GRASP
     if not any(grasp_ok_at_target(name, g) for g in grasps):
@@ -1182,5 +1187,10 @@ def _why_not(name, mesh, grasps, grasp_ok_at_target, area, prefer, unrested: boo
     if unrested:
         return (f"part {name!r}: it rests in none of its stable poses on a pedestal (its underside does not stand on "
                 "the pedestal's top, and it does not settle there), and no board to lie on takes it", NO_PLACE)
+    if unpicked:
+        low_m = float(np.min(mesh.extents))
+        return (f"part {name!r}: at no place in the kitting ring does any of its grasps keep the hand clear of what "
+                f"the part lies on (it is {low_m * 1000:.0f} mm across at its thinnest: the fingers reach below a "
+                "part this low and meet its support); parts this small are not handled yet", NO_PLACE)
     return (f"part {name!r}: no free place in the kitting ring where one grasp works at the pick (reachable, clear "
             "of its neighbours) and at its target", NO_PLACE)

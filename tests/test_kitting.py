@@ -101,6 +101,22 @@ def test_a_ring_too_small_says_so():
     assert caught.value.kind == TOO_LARGE
 
 
+@pytest.mark.parametrize("diameter_m, pickable", [(0.012, False), (0.016, True)])
+def test_a_part_too_low_for_the_fingers_is_named_as_such(diameter_m, pickable):
+    """A dowel 60 mm long lying on its support: at 12 mm across, every grasp's fingers reach below it into what it
+    lies on, at every place, and the failure says the part is too small for the hand; at 16 mm it is laid out."""
+    from planning.grasp import antipodal_grasps
+
+    dowel = trimesh.creation.cylinder(diameter_m / 2, 0.06, sections=24)
+    grasps = antipodal_grasps(dowel, np.random.default_rng(0))
+    if pickable:
+        assert plan_kitting(["dowel"], [dowel], {"dowel": grasps}, lambda n, g: True, AREA)
+        return
+    with pytest.raises(KittingError, match="part 'dowel': at no place in the kitting ring does any of its grasps "
+                                           "keep the hand clear of what the part lies on .it is 12 mm across"):
+        plan_kitting(["dowel"], [dowel], {"dowel": grasps}, lambda n, g: True, AREA)
+
+
 def _plain_pedestal_top(mesh, rest_from_part):
     from planning.kitting import _rest_half, pedestal_for
     from planning.pose import Pose
