@@ -588,7 +588,8 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
         if failed is None:
             break
         message, kind = _why_not(failed, mesh_of[failed], candidates[failed], grasp_ok_at_target, area,
-                                 layout.prefer, failed in layout.unrested, failed not in layout.picked)
+                                 layout.prefer, failed in layout.unrested,
+                                 failed in layout.tried and failed not in layout.picked)
         if kind != NO_PLACE or failed in layout.unrested or failed in first or len(first) >= LAYOUT_RETRIES:
             raise KittingError(message, kind, failed)
         first.append(failed)
@@ -620,6 +621,7 @@ class _Layout:
         self.rests = None  # physics check (loose bodies, fixed bodies) -> bool, see plan_kitting
         self.settles = None  # physics (loose bodies, fixed bodies) -> where they come to rest, see plan_kitting
         self.unrested: set[str] = set()  # parts with no pose that rests on a pedestal
+        self.tried: set[str] = set()  # parts for which some place was tried
         self.picked: set[str] = set()  # parts that some place tried lets the hand grasp clear of their support
         self.fingers_freed: set[tuple] = set()  # (part, rest pose) whose pedestal :meth:`_free_fingers` checked
 
@@ -953,6 +955,7 @@ class _Layout:
         when no grasp works here or some earlier slot would keep no option."""
         own = [] if pedestal is None else [(pedestal.mesh(), pedestal.world_from_pedestal)]
         tips = _tips_under(mesh, world_from_part)
+        self.tried.add(name)
         at_pick = {_grasp_key(g) for g in _pickable(grasps, world_from_part, own, self.area.table_z_m,
                                                      self.obstacles_at_pick(name, corners)) if not tips(g)}
         if at_pick or (name not in self.picked and _pickable(grasps, world_from_part, own, self.area.table_z_m)):
