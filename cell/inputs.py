@@ -133,9 +133,9 @@ def load_poses(path: str | Path, part_names: list[str]) -> dict[str, Pose]:
 
 
 def load_masses(path: str | Path, parts: Parts) -> dict[str, float]:
-    """Part masses (kg) from a JSON object ``{"part name": kg, ...}`` naming parts of the parts folder; parts it
-    leaves out weigh their volume at ``--density``. Each mass, spread over its part's volume (the mesh's, or its
-    convex hull's where the mesh is not closed), must give a density between :data:`MIN_DENSITY_KG_M3` and
+    """The density (kg/m3) of each part named in a JSON object of part masses ``{"part name": kg, ...}``: its
+    mass spread evenly over its volume (the mesh's, or its convex pieces' where the mesh is not closed); parts it
+    leaves out weigh their volume at ``--density``. Each density must lie between :data:`MIN_DENSITY_KG_M3` and
     :data:`MAX_DENSITY_KG_M3`: anything else is a unit mistake (grams, a mesh in the wrong unit) or a typo."""
     import json
     import math
@@ -170,5 +170,5 @@ def load_masses(path: str | Path, parts: Parts) -> dict[str, float]:
             raise InputError(f"{path}: part {name!r}: {kg:g} kg in its {litres:.3g} litres is {density:.4g} kg/m3, "
                              f"{'lighter' if density < MIN_DENSITY_KG_M3 else 'denser'} than any furniture material; "
                              "give masses in kg (and the meshes' units with --units)")
-        checked[name] = float(kg)
+        checked[name] = density
     return checked

@@ -50,18 +50,16 @@ def indented(text: str, prefix: str) -> str:
 
 class Pipeline:
     def __init__(self, scene: Scene, parts: Parts, image: np.ndarray | None, given: dict[str, Pose] | None,
-                 args: argparse.Namespace, console, report: dict, masses_kg: dict[str, float] | None = None) -> None:
-        from planning.payload import volume_m3
-
+                 args: argparse.Namespace, console, report: dict,
+                 given_density_kg_m3: dict[str, float] | None = None) -> None:
         self.scene, self.parts, self.image, self.given = scene, parts, image, given
         self.args, self.console, self.report = args, console, report
         # the parts' material (kg/m3): their weight in the payload check, the planner's torque checks and the
-        # simulation; a part of known mass (--masses) has that mass spread evenly over its volume
+        # simulation; a part of known mass (--masses, cell.inputs.load_masses) has that mass spread over its volume
         self.density_kg_m3 = args.density or DEFAULT_DENSITY_KG_M3
-        meshes = dict(zip(parts.names, parts.meshes))
-        self.masses_kg = dict(masses_kg or {})
-        self.part_density_kg_m3 = {name: self.masses_kg[name] / volume_m3(meshes[name])
-                                   if name in self.masses_kg else self.density_kg_m3 for name in parts.names}
+        self.given_density_kg_m3 = dict(given_density_kg_m3 or {})
+        self.part_density_kg_m3 = {name: self.given_density_kg_m3.get(name, self.density_kg_m3)
+                                   for name in parts.names}
         self.target: Assembly | None = None
         self.plan = None
         self.world_from_target: Pose | None = None  # the target's assembly frame on the jig, once planned
@@ -112,13 +110,13 @@ class Pipeline:
         masses = part_masses_kg(assembly, self.density_kg_m3, self.part_density_kg_m3)
         for name, kg in masses.items():
             self.entries[name].update(mass_kg=kg, density_kg_m3=self.part_density_kg_m3[name],
-                                      mass_from="--masses" if name in self.masses_kg else "--density")
+                                      mass_from="--masses" if name in self.given_density_kg_m3 else "--density")
         heavy = too_heavy(masses, payload_kg)
         if heavy:
             name, kg = heavy[0]
             others = f" (and {len(heavy) - 1} more)" if len(heavy) > 1 else ""
             density = self.part_density_kg_m3[name]
-            weight = (f"its given mass is {kg:.1f} kg (--masses)" if name in self.masses_kg else
+            weight = (f"its given mass is {kg:.1f} kg (--masses)" if name in self.given_density_kg_m3 else
                       f"it weighs {kg:.1f} kg ({kg / density * 1000:.1f} litres at {density:.0f} kg/m3, --density)")
             raise BadInput(f"part {name!r}{others}: {weight}, more than the Panda's rated payload of {payload_kg:g} kg "
                            "([robot] payload_kg in the scene file); give the parts' real density or masses "

@@ -131,13 +131,13 @@ def _run(args: argparse.Namespace, console: Console) -> int:
         parts = load_parts(args.parts, args.units)
         image = load_image(args.image) if args.image is not None else None
         given = load_poses(args.poses, parts.names) if args.poses is not None else None
-        masses = load_masses(args.masses, parts) if args.masses is not None else {}
+        given_density = load_masses(args.masses, parts) if args.masses is not None else {}
     except (InputError, SceneError) as exc:
         raise BadInput(str(exc)) from exc
     console.say(f"{len(parts.names)} parts from {args.parts}" + (f", image {args.image}" if image is not None else ""))
-    if masses:
-        rest = len(parts.names) - len(masses)
-        console.say(f"masses of {len(masses)} part(s) from {args.masses}"
+    if given_density:
+        rest = len(parts.names) - len(given_density)
+        console.say(f"masses of {len(given_density)} part(s) from {args.masses}"
                     + (f"; {rest} other(s) at {args.density or DEFAULT_DENSITY_KG_M3:g} kg/m3" if rest else ""))
 
     report: dict = {"success": False, "exit_code": None, "failure": None,
@@ -150,7 +150,7 @@ def _run(args: argparse.Namespace, console: Console) -> int:
                     "world_from_assembly": scene.fixture.world_from_assembly.to_dict(), "parts": []}
     from cell.pipeline import Pipeline, indented
 
-    pipeline = Pipeline(scene, parts, image, given, args, console, report, masses)
+    pipeline = Pipeline(scene, parts, image, given, args, console, report, given_density)
     try:
         pipeline.targets()  # perception or --poses, then repair; bad geometry here is bad input
         exit_code = pipeline.plan_and_simulate()
