@@ -971,4 +971,4 @@ def feasible_grasps(
 
 def grasp_pose_key(grasp: Grasp) -> tuple:
     """Where the grasp holds the part, whatever its opening and ranking scores."""
-    return (tuple(np.round(grasp.part_from_tcp.position, 9)), tuple(np.round(grasp.part_from_tcp.quat_wxyz, 9)))
+    return grasp.part_from_tcp.key()

@@ -145,6 +145,7 @@ class Pose:
     position: np.ndarray
     quat_wxyz: np.ndarray
     _rotation: np.ndarray = field(init=False, repr=False, compare=False)
+    _key: tuple | None = field(init=False, repr=False, compare=False, default=None)
 
     def __post_init__(self) -> None:
         position = np.asarray(self.position, dtype=np.float64).reshape(3)
@@ -187,6 +188,14 @@ class Pose:
         if abs(norm - 1.0) > tolerance:
             raise ValueError(f"quaternion {q.tolist()} has norm {norm:.6f}, not 1 (tolerance {tolerance})")
         return Pose(np.asarray(position, dtype=np.float64), q)
+
+    def key(self) -> tuple:
+        """The pose as a hashable tuple: position and quaternion rounded to 1e-9 (computed once: planners look
+        the same pose up hundreds of thousands of times)."""
+        if self._key is None:
+            object.__setattr__(self, "_key", (tuple(np.round(self.position, 9).tolist()),
+                                              tuple(np.round(self.quat_wxyz, 9).tolist())))
+        return self._key
 
     # --- algebra ------------------------------------------------------------------------------------------
     @property

@@ -167,8 +167,12 @@ def test_frames_gif_and_final_still(stack_result, tmp_path):
     frames = stack_result.frames
     assert len(frames) >= 10 and frames[0].shape == (240, 320, 3) and frames[0].dtype == np.uint8
     path = write_gif(frames, tmp_path / "animation.gif")
-    with Image.open(path) as gif:
-        assert gif.n_frames == len(frames) and gif.size == (320, 240)
+    with Image.open(path) as gif:  # identical frames in a row (the arm at rest) are merged, their durations added
+        durations = []
+        for k in range(gif.n_frames):
+            gif.seek(k)
+            durations.append(gif.info["duration"])
+        assert sum(durations) == 100 * len(frames) and gif.size == (320, 240)
     still = render_final(stack_result, PARTS, STATIC, BASE)
     assert still.shape == (240, 320, 3) and still.std() > 10  # not a blank picture
     assert np.abs(still.astype(int) - frames[-1].astype(int)).mean() < 5  # the last frame shows the same state
