@@ -47,13 +47,14 @@ class IKSettings:
     matters: a part meets its neighbours with fractions of a millimetre to spare (PyBullet's IK alone stops about
     0.5 mm and 0.3 degrees off, and an assembled panel then lands on the rails it should drop between).
 
-    By default the solution is the Panda's closed form (:mod:`planning.panda_ik`) nearest the start: joint 7 at
-    ``q7_samples`` angles across its range and at the start's own, then 16 times finer around the best, then at
-    the nearest point of the best's branch. ``local`` asks instead for the solution that the start leads to:
-    ``refinements`` rounds of PyBullet's damped least squares (``iterations`` each) until within
-    ``coarse_tolerance_m`` / ``coarse_tolerance_rad``, then Gauss-Newton polishing (:meth:`Panda.polish_tcp`). A
-    straight line followed waypoint by waypoint needs that: the nearest closed-form solution may lie on another
-    branch once the start's own branch leaves the joint limits."""
+    A solution is the one the start leads to: ``refinements`` rounds of PyBullet's damped least squares
+    (``iterations`` each) until within ``coarse_tolerance_m`` / ``coarse_tolerance_rad``, then Gauss-Newton
+    polishing (:meth:`Panda.polish_tcp`). By default, where that fails, it is the Panda's closed form
+    (:mod:`planning.panda_ik`) nearest the start: joint 7 at ``q7_samples`` angles across its range and at the
+    start's own, then 16 times finer around the best, then at the nearest point of the best's branch; and where
+    the closed form finds none, the pose is out of reach. ``local`` asks for the first alone: a straight line
+    followed waypoint by waypoint needs it, as the nearest closed-form solution may lie on another branch once
+    the start's own branch leaves the joint limits."""
 
     local: bool = False
     q7_samples: int = 64
@@ -158,9 +159,11 @@ class Panda:
         :class:`IKError`.
 
         The start is ``seed_q``, or where it is None, a configuration drawn from ``rng`` within the limits (another
-        attempt: another elbow). The answer is the closed-form solution nearest the start in joint space, preferring
-        those :data:`PREFERRED_LIMIT_MARGIN_RAD` inside every limit; with ``settings.local``, the one the start leads
-        to by damped least squares (``seed_q`` None: the current configuration).
+        attempt: another elbow). Where the closed form finds no solution at all, the pose is out of reach: that is
+        known in a millisecond. Otherwise the answer is the solution the start leads to by damped least squares, as
+        a straight line from it would follow, and where that fails, the closed-form solution nearest the start in
+        joint space, preferring those :data:`PREFERRED_LIMIT_MARGIN_RAD` inside every limit. With
+        ``settings.local``, only the first (``seed_q`` None: from the current configuration).
         """
         if settings.local:
             return self._inverse_tcp_local(world_from_tcp, seed_q, settings)
@@ -173,6 +176,10 @@ class Panda:
         if len(solutions) == 0:
             raise IKError(f"no arm configuration within the joint limits places the TCP at {world_from_tcp} "
                           f"(closed form, joint 7 at {len(q7_values)} angles)")
+        try:
+            return self._inverse_tcp_local(world_from_tcp, start, settings)
+        except IKError:
+            pass
         # then 16 times finer around the best angle of joint 7 (the other joints may turn several times as fast),
         # then at the vertex of a parabola through the distances there: no jitter along a line of nearby targets
         step = (self.upper_limits[6] - self.lower_limits[6]) / max(settings.q7_samples - 1, 1)

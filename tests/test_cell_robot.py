@@ -113,6 +113,17 @@ def test_the_solution_is_the_one_nearest_the_seed_and_random_starts_find_other_e
         assert dp < 0.01 and da < 0.02  # the rounding to 0.01 rad moves the TCP a few millimetres
 
 
+def test_where_damped_least_squares_from_the_start_fails_the_closed_form_reaches_the_pose(panda):
+    home = np.array(load_scene().robot.home_q)
+    q = np.array([1.81, 1.129, 0.091, -2.244, -2.647, 1.412, -0.543])  # far from home: over the shoulder, behind
+    target = panda.forward_tcp(q)
+    with pytest.raises(IKError):
+        panda.inverse_tcp(target, np.random.default_rng(0), seed_q=home, settings=IKSettings(local=True))
+    found = panda.inverse_tcp(target, np.random.default_rng(0), seed_q=home)
+    dp, da = panda.forward_tcp(found).distance(target)
+    assert dp <= 2e-5 and da <= 2e-4 and panda.within_limits(found)
+
+
 def test_a_local_solution_follows_its_seed_along_a_straight_line(panda):
     q = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 1.9, 0.785])
     start = panda.forward_tcp(q)
