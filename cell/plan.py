@@ -242,10 +242,10 @@ class _KitReach(Reach):
         """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its (ignore, hand_ignore)
         sets (see :meth:`RobotCollisionChecker.first_invalid`; no collision check when ``checks`` is None), the
         joint-space ``segments`` (from, to, index of the checks) between them valid too, and, where ``held``,
-        holding the ``load``; or None. The first pose's inverse kinematics is the closed-form solution nearest
-        ``seed`` in the first attempt and nearest a random configuration in the others (the arm is redundant:
-        another elbow may clear what the first one meets); each later pose's is the one that the pose before leads
-        to (:attr:`IKSettings.local`). ``accept(configurations)``, where given, must hold too."""
+        holding the ``load``; or None. The first pose's inverse kinematics starts from ``seed`` in the first attempt
+        and from a random configuration in the others (the arm is redundant: another elbow may clear what the first
+        one meets; see :meth:`Panda.inverse_tcp`); each later pose's is the one that the pose before leads to
+        (:attr:`IKSettings.local`). ``accept(configurations)``, where given, must hold too."""
         self.chain_unreached = True  # no attempt found inverse kinematics for every pose
         if not all(self._within_reach(pose) for pose in poses):
             return None

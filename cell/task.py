@@ -18,8 +18,8 @@ For every part, in assembly order, the robot
 
 Finally it returns home. Straight segments are solved by inverse kinematics every :data:`CARTESIAN_STEP_M`
 (seeded from the previous point, so the joints move continuously) and checked with the collision model;
-the contact end of each straight segment is solved first (closed form, nearest the seed) so that the free end
-follows it.
+the contact end of each straight segment is solved first (from the seed, or the closed-form solution nearest it)
+so that the free end follows it.
 
 Collision worlds (all in the cell's world frame, metres): the table, the jig pads, every pedestal, the parts
 still lying in the kitting area, and the parts already placed. What the plan deliberately touches is ignored
@@ -69,7 +69,7 @@ HELD_MARGIN_M = 0.002  # the held part is checked pulled in by this much, so it 
 SQUEEZE_M = 0.004  # the closing command asks for this much less than the part's width (force closure)
 DENSE_CHECK_RAD = 0.004  # joint step of the re-check of planned paths
 TORQUE_CHECK_RAD = 0.05  # joint step of the holding-torque check along a segment (the torques vary slowly)
-IK_ATTEMPTS = 6  # IK solutions tried (nearest the seed, then nearest random starts) for a collision-free contact
+IK_ATTEMPTS = 6  # IK solutions tried (from the seed, then from random starts) for a collision-free contact
 JOINT_LIMIT_MARGIN_RAD = 0.01  # configurations keep this from the joint limits (timed motions must not touch them)
 CARRY_CLEARANCE_M = 0.002  # the carried part is grown by this much on its way to the target ...
 TRANSIT_CLEARANCE_M = 0.003  # ... and free-space moves keep this from every obstacle
