@@ -207,7 +207,7 @@ class QueryBuilder:
         for attempt in range(4):
             try:
                 q = self.panda.inverse_tcp(target, self.rng, seed_q=self.home if attempt == 0 else None,
-                                           settings=IKSettings())
+                                           settings=IKSettings(restarts=6))
             except IKError:
                 continue
             if self._free(q, obstacles, held, opening_m):

@@ -63,8 +63,8 @@ from planning.robot_collision import LINK_CLEARANCE_M, RobotCollisionChecker
 from planning.sequence import GraspChecker, plan_assembly_sequence
 
 PANDA_REACH_M = 0.855  # from the shoulder (joint 2) to the flange, fully stretched
-# inverse-kinematics attempts for a chain of poses: the first from the given start, the others from random ones (each
-# query's own draws: cell.robot.pose_rng), for another elbow
+# inverse-kinematics attempts for a chain of poses, each from where the last left the arm or, where another elbow is
+# sought, from a random start (each query's own draws: cell.robot.pose_rng)
 CHAIN_ATTEMPTS = 3
 RELEASE_SEEDS = 4  # arm configurations at earlier releases that seed a release out of reach from elsewhere
 SHOULDER_HEIGHT_M = 0.333
@@ -209,7 +209,7 @@ class _KitReach(Reach):
         table = _table(scene)
         self._convex: dict[int, tuple[trimesh.Trimesh, ConvexPart]] = {}  # id(mesh) -> (mesh, its convex pieces)
         self.table = {"table": (self._convex_part(table.mesh), table.world_from_obstacle.matrix())}
-        self.settings, self.local_settings = IKSettings(), IKSettings(local=True)
+        self.settings = IKSettings(restarts=4)
         self.shoulder = scene.robot.world_from_base.apply(np.array([[0.0, 0.0, SHOULDER_HEIGHT_M]]))[0]
         self.at_target_cache: dict[tuple, tuple | None] = {}  # (part, grasp, opening, kit) -> configurations
         self.too_heavy = 0  # arm configurations refused only because they could not hold the part's weight
@@ -237,25 +237,28 @@ class _KitReach(Reach):
 
     def _chain(self, poses: list[Pose], seed: np.ndarray | None,
                checks: list[tuple[frozenset[str], frozenset[str]]] | None,
-               load: JointTorques | None = None, held: tuple[bool, ...] = (),
-               segments: tuple[tuple[int, int, int], ...] = (), accept=None):
+               load: JointTorques | None = None, held: tuple[bool, ...] = (), elsewhere: bool = False,
+               first_ik: IKSettings | None = None, segments: tuple[tuple[int, int, int], ...] = (),
+               accept=None):
         """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its (ignore, hand_ignore)
         sets (see :meth:`RobotCollisionChecker.first_invalid`; no collision check when ``checks`` is None), the
         joint-space ``segments`` (from, to, index of the checks) between them valid too, and, where ``held``,
-        holding the ``load``; or None. The first pose's inverse kinematics starts from ``seed`` in the first attempt
-        and from a random configuration in the others (the arm is redundant: another elbow may clear what the first
-        one meets; see :meth:`Panda.inverse_tcp`); each later pose's is the one that the pose before leads to
-        (:attr:`IKSettings.local`). ``accept(configurations)``, where given, must hold too."""
+        holding the ``load``; or None. The first attempt starts from ``seed``; the others from where
+        the last one left the arm, or, ``elsewhere``, from random configurations (the arm is redundant: another
+        elbow may clear what the first one meets). The first pose's inverse kinematics uses ``first_ik`` (default:
+        the planner's settings, few restarts), the others start from the pose before. ``accept(configurations)``,
+        where given, must hold too."""
         self.chain_unreached = True  # no attempt found inverse kinematics for every pose
         if not all(self._within_reach(pose) for pose in poses):
             return None
         rng = pose_rng(poses[0], self.seed)
         for attempt in range(CHAIN_ATTEMPTS):
             configurations = []
-            previous = seed if attempt == 0 else None
+            previous = (seed if attempt == 0 else rng.uniform(self.panda.lower_limits, self.panda.upper_limits)
+                        if elsewhere else None)
             try:
                 for k, pose in enumerate(poses):
-                    settings = self.settings if k == 0 else self.local_settings
+                    settings = (first_ik or self.settings) if k == 0 else IKSettings(restarts=1)
                     previous = self.panda.inverse_tcp(pose, rng, seed_q=previous, settings=settings)
                     configurations.append(previous)
             except IKError:
@@ -326,19 +329,19 @@ class _KitReach(Reach):
             checks, load = list(self._AT_TARGET_IGNORES), self._load(part, grasp)
             retreat_clear = (None if not kit else
                              lambda configurations: self._retreat_clear(configurations, grasp.opening_m, kit))
-            found = self._chain(poses, self.home_q, checks, load, (True, True, False),
+            found = self._chain(poses, self.home_q, checks, load, (True, True, False), elsewhere=bool(kit),
                                 segments=self._TARGET_SEGMENTS, accept=retreat_clear)
             reached = not self.chain_unreached
             if found is None and not kit:  # harder: other elbows, and more starts for the release (the first
                 # attempts start at home and near each other)
                 start = pose_rng(poses[0], self.seed + 1).uniform(self.panda.lower_limits, self.panda.upper_limits)
-                found = self._chain(poses, start, checks, load, (True, True, False),
-                                    segments=self._TARGET_SEGMENTS)
+                found = self._chain(poses, start, checks, load, (True, True, False), elsewhere=True,
+                                    first_ik=IKSettings(), segments=self._TARGET_SEGMENTS)
                 reached = reached or not self.chain_unreached
                 # at the edge of the reach (cabinet_13's side panel), random starts rarely converge: from the
                 # releases found for other grasps and parts, nearby
                 for seed in (self.release_seeds[::-1] if found is None and self.chain_unreached else []):
-                    found = self._chain(poses, seed, checks, load, (True, True, False),
+                    found = self._chain(poses, seed, checks, load, (True, True, False), first_ik=IKSettings(),
                                         segments=self._TARGET_SEGMENTS)
                     reached = reached or not self.chain_unreached
                     if found is not None or not self.chain_unreached:

@@ -1,9 +1,8 @@
 """The Franka Panda in a PyBullet client: joints, limits, forward and inverse kinematics.
 
 Joint values are radians, positions metres, poses ``world_from_*`` in the world frame of the cell. Inverse
-kinematics is the Panda's closed form (:mod:`planning.panda_ik`), or, to follow a straight line, PyBullet's damped
-least squares from the previous waypoint; a solution counts only when PyBullet's forward kinematics confirms it and
-every joint is within its limits.
+kinematics uses PyBullet's damped least squares from several seeded starts and accepts a solution only when
+forward kinematics confirms it and every joint is within its limits.
 """
 
 from __future__ import annotations
@@ -22,8 +21,6 @@ HAND_LINK = "panda_hand"
 VELOCITY_LIMITS = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
 ACCELERATION_LIMITS = np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])
 JERK_LIMITS = np.array([7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0])
-# inverse kinematics prefers solutions this far inside every joint limit (the planners keep 0.01 rad from them)
-PREFERRED_LIMIT_MARGIN_RAD = 0.02
 
 
 def pose_rng(world_from_tcp: Pose, seed: int = 0) -> np.random.Generator:
@@ -43,27 +40,22 @@ class IKError(RuntimeError):
 
 @dataclass(frozen=True)
 class IKSettings:
-    """Inverse kinematics to within ``position_tolerance_m`` and ``angle_tolerance_rad``. The tight default
-    matters: a part meets its neighbours with fractions of a millimetre to spare (PyBullet's IK alone stops about
-    0.5 mm and 0.3 degrees off, and an assembled panel then lands on the rails it should drop between).
-
-    A solution is the one the start leads to: ``refinements`` rounds of PyBullet's damped least squares
+    """Inverse kinematics: ``restarts`` starts, each ``refinements`` rounds of PyBullet's damped least squares
     (``iterations`` each) until within ``coarse_tolerance_m`` / ``coarse_tolerance_rad``, then Gauss-Newton
-    polishing (:meth:`Panda.polish_tcp`). By default, where that fails, it is the Panda's closed form
-    (:mod:`planning.panda_ik`) nearest the start: joint 7 at ``q7_samples`` angles across its range and at the
-    start's own, then 16 times finer around the best, then at the nearest point of the best's branch; and where
-    the closed form finds none, the pose is out of reach. ``local`` asks for the first alone: a straight line
-    followed waypoint by waypoint needs it, as the nearest closed-form solution may lie on another branch once
-    the start's own branch leaves the joint limits."""
+    polishing (:meth:`Panda.polish_tcp`) to ``position_tolerance_m`` and ``angle_tolerance_rad``. The tight
+    default matters: a part meets its neighbours with fractions of a millimetre to spare (PyBullet's IK alone
+    stops about 0.5 mm and 0.3 degrees off, and an assembled panel then lands on the rails it should drop
+    between). Where the first start fails, a closed-form check with joint 7 at ``closed_form_samples`` angles
+    (:meth:`Panda.closed_form_reaches`) refuses a pose out of reach before the other starts (0: no check)."""
 
-    local: bool = False
-    q7_samples: int = 64
+    restarts: int = 12
     position_tolerance_m: float = 2e-5
     angle_tolerance_rad: float = 2e-4
     iterations: int = 100
     refinements: int = 8
     coarse_tolerance_m: float = 0.002
     coarse_tolerance_rad: float = 0.02
+    closed_form_samples: int = 361
 
 
 class Panda:
@@ -113,6 +105,13 @@ class Panda:
     def within_limits(self, q: np.ndarray, margin: float = 0.0) -> bool:
         return bool(np.all(q >= self.lower_limits + margin) and np.all(q <= self.upper_limits - margin))
 
+    def _facing(self, q: np.ndarray, world_point: np.ndarray) -> np.ndarray:
+        """``q`` with joint 1 turned so that the arm faces ``world_point`` (within joint 1's limits)."""
+        x, y, _ = self.world_from_base.inverse().apply(np.asarray(world_point, dtype=np.float64)[None])[0]
+        facing = np.array(q, dtype=np.float64)
+        facing[0] = np.clip(np.arctan2(y, x), self.lower_limits[0], self.upper_limits[0])
+        return facing
+
     # --- kinematics -----------------------------------------------------------------------------------------
     def forward_tcp(self, q: np.ndarray) -> Pose:
         """``world_from_tcp`` at arm configuration ``q`` (sets the arm)."""
@@ -155,105 +154,52 @@ class Panda:
 
     def inverse_tcp(self, world_from_tcp: Pose, rng: np.random.Generator, seed_q: np.ndarray | None = None,
                     settings: IKSettings = IKSettings()) -> np.ndarray:
-        """Arm configuration placing the TCP at ``world_from_tcp``, within the joint limits; raises
-        :class:`IKError`.
+        """Arm configuration placing the TCP at ``world_from_tcp``; raises :class:`IKError`.
 
-        The start is ``seed_q``, or where it is None, a configuration drawn from ``rng`` within the limits (another
-        attempt: another elbow). Where the closed form finds no solution at all, the pose is out of reach: that is
-        known in a millisecond. Otherwise the answer is the solution the start leads to by damped least squares, as
-        a straight line from it would follow, and where that fails, the closed-form solution nearest the start in
-        joint space, preferring those :data:`PREFERRED_LIMIT_MARGIN_RAD` inside every limit. With
-        ``settings.local``, only the first (``seed_q`` None: from the current configuration).
+        The first start is ``seed_q`` (or the current configuration), the second (with ``restarts`` >= 2) the
+        same turned by joint 1 to face the target (so that the arm reaches out towards it, elbow up, rather than
+        folding over its own base from a random start), the others uniform within the limits. Where the first
+        start fails and the Panda's closed form (:mod:`planning.panda_ik`, joint 7 at ``closed_form_samples``
+        angles) finds no solution at all, the pose is out of reach and the other starts are not tried: a refusal
+        then takes milliseconds, not the tenth of a second that every start's rounds take.
         """
-        if settings.local:
-            return self._inverse_tcp_local(world_from_tcp, seed_q, settings)
-        start = (np.asarray(seed_q, dtype=np.float64) if seed_q is not None
-                 else rng.uniform(self.lower_limits, self.upper_limits))
-        base_from_tcp = (self.world_from_base.inverse() @ world_from_tcp).matrix()
-        q7_values = np.append(np.linspace(self.lower_limits[6], self.upper_limits[6], settings.q7_samples),
-                              np.clip(start[6], self.lower_limits[6], self.upper_limits[6]))
-        solutions = panda_ik.ik_solutions(base_from_tcp, q7_values, self.lower_limits, self.upper_limits)
-        if len(solutions) == 0:
-            raise IKError(f"no arm configuration within the joint limits places the TCP at {world_from_tcp} "
-                          f"(closed form, joint 7 at {len(q7_values)} angles)")
-        try:
-            return self._inverse_tcp_local(world_from_tcp, start, settings)
-        except IKError:
-            pass
-        # then 16 times finer around the best angle of joint 7 (the other joints may turn several times as fast),
-        # then at the vertex of a parabola through the distances there: no jitter along a line of nearby targets
-        step = (self.upper_limits[6] - self.lower_limits[6]) / max(settings.q7_samples - 1, 1)
-        best = solutions[self._preferred_order(solutions, start)[0]]
-        solutions = np.concatenate([solutions, panda_ik.ik_solutions(
-            base_from_tcp, np.linspace(best[6] - step, best[6] + step, 33), self.lower_limits, self.upper_limits)])
-        best = solutions[self._preferred_order(solutions, start)[0]]
-        vertex = self._nearest_on_branch(base_from_tcp, best, start, step / 16.0)
-        if vertex is not None:
-            solutions = np.concatenate([solutions, vertex[None]])
-        order = self._preferred_order(solutions, start)
-        for q in solutions[order[:4]]:  # PyBullet's forward kinematics confirms it (its floats: ~1e-6 m apart)
-            dp, da = self.forward_tcp(q).distance(world_from_tcp)
-            if dp > settings.position_tolerance_m or da > settings.angle_tolerance_rad:
-                q = self.polish_tcp(q, world_from_tcp)
-                dp, da = self.forward_tcp(q).distance(world_from_tcp)
-            if dp <= settings.position_tolerance_m and da <= settings.angle_tolerance_rad and self.within_limits(q):
-                return q
-        raise IKError(f"the closed-form solutions for the TCP at {world_from_tcp} do not reach it in the "
-                      f"simulator's kinematics (closest {dp * 1000:.3f} mm)")
-
-    def _nearest_on_branch(self, base_from_tcp: np.ndarray, best: np.ndarray, start: np.ndarray,
-                           spacing_rad: float) -> np.ndarray | None:
-        """The solution on ``best``'s branch nearest ``start`` in joint space between joint 7 at ``best``'s angle
-        +- ``spacing_rad`` (the vertex of the parabola through the squared distances at the three angles), or None
-        where the branch leaves the limits there or curves the other way."""
-        def on_branch(q7_values):
-            found = panda_ik.ik_solutions(base_from_tcp, q7_values, self.lower_limits, self.upper_limits)
-            out = []
-            for q7 in q7_values:
-                same = found[np.abs(found[:, 6] - q7) < 1e-12]
-                if len(same) == 0:
-                    return None
-                out.append(same[np.argmin(np.linalg.norm(same - best, axis=1))])
-            return np.array(out)
-
-        trio = on_branch([best[6] - spacing_rad, best[6], best[6] + spacing_rad])
-        if trio is None:
-            return None
-        below, middle, above = np.sum((trio - start) ** 2, axis=1)
-        curvature = below - 2.0 * middle + above
-        if curvature <= 0.0:
-            return None
-        shift = float(np.clip(0.5 * (below - above) / curvature, -1.0, 1.0))
-        vertex = on_branch([best[6] + shift * spacing_rad])
-        return None if vertex is None else vertex[0]
-
-    def _preferred_order(self, solutions: np.ndarray, start: np.ndarray) -> np.ndarray:
-        """Indices of ``solutions`` (K, 7): those :data:`PREFERRED_LIMIT_MARGIN_RAD` inside every limit first, each
-        group nearest ``start`` first."""
-        inside = np.all((solutions >= self.lower_limits + PREFERRED_LIMIT_MARGIN_RAD)
-                        & (solutions <= self.upper_limits - PREFERRED_LIMIT_MARGIN_RAD), axis=1)
-        return np.lexsort((np.linalg.norm(solutions - start, axis=1), ~inside))
-
-    def _inverse_tcp_local(self, world_from_tcp: Pose, seed_q: np.ndarray | None, settings: IKSettings) -> np.ndarray:
-        """The solution that ``seed_q`` (or the current configuration) leads to by PyBullet's damped least
-        squares, iterated from its own result, then polished; raises :class:`IKError`."""
         position, orientation = world_from_tcp.to_pybullet()
-        q = np.asarray(seed_q if seed_q is not None else self.arm_q(), dtype=np.float64)
-        for _ in range(settings.refinements):  # PyBullet's IK is one damped step: iterate it from its own result
-            self.set_arm(q)
-            solution = self.pb.calculateInverseKinematics(
-                self.body, self.tcp_link, position, orientation, maxNumIterations=settings.iterations,
-                residualThreshold=1e-7, physicsClientId=self.cid)
-            q = np.clip(np.array(solution[:7]), self.lower_limits, self.upper_limits)
-            dp, da = self.forward_tcp(q).distance(world_from_tcp)
-            if dp <= settings.coarse_tolerance_m and da <= settings.coarse_tolerance_rad:
-                q = self.polish_tcp(q, world_from_tcp)
+        first = np.asarray(seed_q if seed_q is not None else self.arm_q(), dtype=np.float64)
+        starts = [first, self._facing(first, world_from_tcp.position)][:settings.restarts]
+        starts += [rng.uniform(self.lower_limits, self.upper_limits) for _ in range(settings.restarts - 2)]
+        best_error = np.inf
+        for index, start in enumerate(starts):
+            if index == 1 and settings.closed_form_samples and not self.closed_form_reaches(
+                    world_from_tcp, settings.closed_form_samples):
+                raise IKError(f"no arm configuration within the joint limits places the TCP at {world_from_tcp} "
+                              f"(closed form, joint 7 at {settings.closed_form_samples} angles)")
+            q = start
+            for _ in range(settings.refinements):  # PyBullet's IK is one damped step: iterate it from its own result
+                self.set_arm(q)
+                solution = self.pb.calculateInverseKinematics(
+                    self.body, self.tcp_link, position, orientation, maxNumIterations=settings.iterations,
+                    residualThreshold=1e-7, physicsClientId=self.cid)
+                q = np.clip(np.array(solution[:7]), self.lower_limits, self.upper_limits)
                 dp, da = self.forward_tcp(q).distance(world_from_tcp)
-                break
-        if self.within_limits(q) and dp <= settings.position_tolerance_m and da <= settings.angle_tolerance_rad:
-            return q
-        raise IKError(f"no inverse kinematics for the TCP at {world_from_tcp} within limits from the start "
-                      f"(closest {dp * 1000:.1f} mm)")
+                if dp <= settings.coarse_tolerance_m and da <= settings.coarse_tolerance_rad:
+                    q = self.polish_tcp(q, world_from_tcp)
+                    dp, da = self.forward_tcp(q).distance(world_from_tcp)
+                    break
+            if not self.within_limits(q):
+                continue
+            best_error = min(best_error, dp)
+            if dp <= settings.position_tolerance_m and da <= settings.angle_tolerance_rad:
+                return q
+        raise IKError(f"no inverse kinematics for the TCP at {world_from_tcp} within limits "
+                      f"({settings.restarts} starts; closest {best_error * 1000:.1f} mm)")
+
+
+    def closed_form_reaches(self, world_from_tcp: Pose, samples: int = 361) -> bool:
+        """Whether the Panda's closed form finds a configuration within the joint limits placing the TCP at
+        ``world_from_tcp``, with joint 7 at ``samples`` angles across its range."""
+        base_from_tcp = (self.world_from_base.inverse() @ world_from_tcp).matrix()
+        q7_values = np.linspace(self.lower_limits[6], self.upper_limits[6], samples)
+        return len(panda_ik.ik_solutions(base_from_tcp, q7_values, self.lower_limits, self.upper_limits)) > 0
 
 
 def _rotation_vector(rotation: np.ndarray) -> np.ndarray:

@@ -18,8 +18,7 @@ For every part, in assembly order, the robot
 
 Finally it returns home. Straight segments are solved by inverse kinematics every :data:`CARTESIAN_STEP_M`
 (seeded from the previous point, so the joints move continuously) and checked with the collision model;
-the contact end of each straight segment is solved first (from the seed, or the closed-form solution nearest it)
-so that the free end follows it.
+the contact end of each straight segment is solved first (with restarts) so that the free end follows it.
 
 Collision worlds (all in the cell's world frame, metres): the table, the jig pads, every pedestal, the parts
 still lying in the kitting area, and the parts already placed. What the plan deliberately touches is ignored
@@ -69,7 +68,7 @@ HELD_MARGIN_M = 0.002  # the held part is checked pulled in by this much, so it 
 SQUEEZE_M = 0.004  # the closing command asks for this much less than the part's width (force closure)
 DENSE_CHECK_RAD = 0.004  # joint step of the re-check of planned paths
 TORQUE_CHECK_RAD = 0.05  # joint step of the holding-torque check along a segment (the torques vary slowly)
-IK_ATTEMPTS = 6  # IK solutions tried (from the seed, then from random starts) for a collision-free contact
+IK_ATTEMPTS = 6  # IK solutions tried (each with restarts) for a collision-free contact configuration
 JOINT_LIMIT_MARGIN_RAD = 0.01  # configurations keep this from the joint limits (timed motions must not touch them)
 CARRY_CLEARANCE_M = 0.002  # the carried part is grown by this much on its way to the target ...
 TRANSIT_CLEARANCE_M = 0.003  # ... and free-space moves keep this from every obstacle
@@ -151,7 +150,7 @@ class CellWorld:
         self._arm_torques: JointTorques | None = None
         self.static = static
         self.parts = parts
-        # IK's random starts are drawn per target pose from this seed (cell.robot.pose_rng), not from a shared stream
+        # IK restarts are drawn per target pose from this seed (cell.robot.pose_rng), not from a shared stream
         self.ik_seed = int(rng.integers(2**31))
         self.motion = motion or MotionSettings()
         self.part_poses: dict[str, Pose] = {}
@@ -260,7 +259,7 @@ class CellWorld:
         keeping the orientation: IK every ``step_m`` (m), each seeded from the previous point."""
         distance = float(np.linalg.norm(offset_world))
         steps = max(1, int(np.ceil(distance / step_m)))
-        settings = IKSettings(local=True, refinements=24, iterations=200)
+        settings = IKSettings(restarts=1, refinements=24, iterations=200)
         path = [np.asarray(q_contact, dtype=np.float64)]
         for k in range(1, steps + 1):
             target = Pose(world_from_tcp_contact.position + offset_world * (k / steps),
