@@ -193,8 +193,7 @@ class Panda:
         raise IKError(f"no inverse kinematics for the TCP at {world_from_tcp} within limits "
                       f"({settings.restarts} starts; closest {best_error * 1000:.1f} mm)")
 
-
-    def closed_form_reaches(self, world_from_tcp: Pose, samples: int = 361) -> bool:
+    def closed_form_reaches(self, world_from_tcp: Pose, samples: int = IKSettings.closed_form_samples) -> bool:
         """Whether the Panda's closed form finds a configuration within the joint limits placing the TCP at
         ``world_from_tcp``, with joint 7 at ``samples`` angles across its range."""
         base_from_tcp = (self.world_from_base.inverse() @ world_from_tcp).matrix()
