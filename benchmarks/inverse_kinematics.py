@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from cell.bullet import BulletClient  # noqa: E402
 from cell.robot import IKError, Panda  # noqa: E402
 from cell.scene import load_scene  # noqa: E402
+from planning.panda_ik import SHOULDER_HEIGHT_M  # noqa: E402
 from planning.pose import Pose  # noqa: E402
 
 
@@ -61,7 +62,7 @@ def main() -> int:
 
 def _random_poses(panda: Panda, rng: np.random.Generator, count: int) -> int:
     home = np.array(load_scene().robot.home_q)
-    shoulder = np.array([0.0, 0.0, 0.333])
+    shoulder = np.array([0.0, 0.0, SHOULDER_HEIGHT_M])
     poses = []
     while len(poses) < count:
         position = shoulder + rng.uniform(-0.9, 0.9, 3)

@@ -49,6 +49,7 @@ from planning.kitting import (
     plan_kitting,
 )
 from planning.motion import MotionSettings
+from planning.panda_ik import SHOULDER_HEIGHT_M
 from planning.payload import (
     DEFAULT_DENSITY_KG_M3,
     HOLDING_TORQUE_FRACTION,
@@ -67,7 +68,6 @@ PANDA_REACH_M = 0.855  # from the shoulder (joint 2) to the flange, fully stretc
 # sought, from a random start (each query's own draws: cell.robot.pose_rng)
 CHAIN_ATTEMPTS = 3
 RELEASE_SEEDS = 4  # arm configurations at earlier releases that seed a release out of reach from elsewhere
-SHOULDER_HEIGHT_M = 0.333
 HAND_LENGTH_M = 0.21  # flange to the TCP between the fingertips
 NEAR_TARGET_M = 0.25  # placed parts farther than this from a part's target cannot touch the hand placing it
 KIT_SEGMENT_STEP_M = 0.01  # kitting checks the straight lines at its configurations this finely (the task planner
