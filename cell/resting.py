@@ -8,9 +8,9 @@ and slide or tip over in the second: a chair's side frame of tubes standing on t
 chocks falls over within a second, a board stacked on a bevelled one slides off it, and later the fingers close
 on air. :class:`PhysicsRestCheck` drops the bodies where the layout puts them in a headless PyBullet client built
 as :mod:`cell.simulate` builds its cell (same bodies, friction, density and physics settings) and says whether every
-loose one stays put. :meth:`PhysicsRestCheck.settle` lets them come to rest first and says where they lie (for a
-part that rests on its pedestal only once it has tipped onto it: a dished board on a pedestal inset from its rim,
-a tapered leg).
+loose one stays put, and whether it is wedged into what it lies on. :meth:`PhysicsRestCheck.settle` lets them come to
+rest first and says where they lie (for a part that rests on its pedestal only once it has tipped onto it: a
+dished board on a pedestal inset from its rim, a tapered leg).
 
 Units: metres, seconds; poses ``world_from_*`` (world +z up) as :class:`planning.pose.Pose`.
 """
@@ -28,7 +28,7 @@ from cell.bodies import add_convex_body
 from cell.bullet import BulletClient
 from cell.simulate import SimSettings, configure_physics
 from planning.convex import mesh_key
-from planning.payload import MassProperties, mass_properties
+from planning.payload import GRAVITY_M_S2, MassProperties, mass_properties
 from planning.pose import Pose
 
 REST_CHECK_S = 4.0
@@ -40,6 +40,15 @@ REST_MOTION_M = 0.002
 """A corner of a loose body's bounding box moving farther than this (metres) in that time: it does not rest."""
 REST_SPEED_M_S = 0.004
 """... nor one whose centre still moves faster than this at the end (a slow creep off its support)."""
+WEDGED_FORCE_RATIO = 3.0
+"""A loose body pressed by contacts whose normal forces sum to more than this times the weight of all the loose
+bodies is wedged. Resting, a body's contacts carry its weight and that of any body on it (ratio 1 to 2 measured);
+one jammed into its support is pressed far harder (12 to 55 times measured) and is held there by friction when
+lifted. A chair's frame of tubes lying between chocks (chair_bertil_0148's part_00, 0.83 kg) was jammed across them
+at both ends, 1.2 mm into them, with 258 N of contact, 30 times its weight. It stayed put, so it passed as resting.
+In the program, an arm whose shoulder had less torque to spare (another IK solution) stalled lifting it and tore it
+out with a jerk that broke joint 7's velocity limit. A wedged body counts as resting only where the caller allows it
+(``allow_wedged``): the kit takes such a place only for a part that rests unwedged in none of its poses."""
 SETTLE_S = 1.5
 """Simulated seconds :meth:`PhysicsRestCheck.settle` lets the bodies move before it reads where they lie."""
 
@@ -49,37 +58,42 @@ Body = tuple[trimesh.Trimesh, Pose]
 class PhysicsRestCheck:
     """``check(loose, fixed)``: whether every ``loose`` (mesh, world_from_part) stays where it is, within
     :data:`REST_MOTION_M` over :data:`REST_CHECK_S`, among the ``fixed`` (mesh, world_from_body) bodies (pedestals,
-    the table) under gravity. One headless client is reused for every check; close it (or use ``with``)."""
+    the table) under gravity, and is not wedged there (pressed with over ``wedged_force_ratio`` times the loose
+    bodies' weight, :data:`WEDGED_FORCE_RATIO`) unless ``allow_wedged``. One
+    headless client is reused for every check; close it (or use ``with``)."""
 
     def __init__(self, settings: SimSettings | None = None, duration_s: float = REST_CHECK_S,
-                 tolerance_m: float = REST_MOTION_M, speed_m_s: float = REST_SPEED_M_S) -> None:
+                 tolerance_m: float = REST_MOTION_M, speed_m_s: float = REST_SPEED_M_S,
+                 wedged_force_ratio: float = WEDGED_FORCE_RATIO) -> None:
         self.settings = settings or SimSettings()
         self.duration_s, self.tolerance_m, self.speed_m_s = duration_s, tolerance_m, speed_m_s
+        self.wedged_force_ratio = wedged_force_ratio
         self._client: BulletClient | None = None
         self._folder = tempfile.TemporaryDirectory(prefix="image-assembly-rest-")
         self._props: dict[str, MassProperties] = {}
         self.checks = 0  # how many simulations ran (for profiling and tests)
-        self._answers: dict[tuple, bool] = {}  # the same bodies at the same poses: the same answer
+        self._answers: dict[tuple, tuple[bool, bool]] = {}  # the same bodies at the same poses: (still, wedged)
         self._settled: dict[tuple, list[Pose] | None] = {}
         self._keys: dict[int, tuple[trimesh.Trimesh, str]] = {}  # id(mesh) -> (mesh, mesh_key): hashing is slow
 
-    def __call__(self, loose: Sequence[Body], fixed: Sequence[Body]) -> bool:
-        return self.check(loose, fixed)
+    def __call__(self, loose: Sequence[Body], fixed: Sequence[Body], allow_wedged: bool = False) -> bool:
+        return self.check(loose, fixed, allow_wedged)
 
-    def check(self, loose: Sequence[Body], fixed: Sequence[Body]) -> bool:
+    def check(self, loose: Sequence[Body], fixed: Sequence[Body], allow_wedged: bool = False) -> bool:
         key = self._key(loose, fixed)
         if key not in self._answers:
-            self._answers[key] = self._simulate(loose, fixed, self.duration_s)[0]
-        return self._answers[key]
+            self._answers[key] = self._simulate(loose, fixed, self.duration_s)[:2]
+        still, wedged = self._answers[key]
+        return still and (allow_wedged or not wedged)
 
-    def settle(self, loose: Sequence[Body], fixed: Sequence[Body]) -> list[Pose] | None:
+    def settle(self, loose: Sequence[Body], fixed: Sequence[Body], allow_wedged: bool = False) -> list[Pose] | None:
         """Where the ``loose`` bodies lie (world_from_part, in their order) after :data:`SETTLE_S` under gravity
         among the ``fixed`` ones, provided they then rest there (:meth:`check` from those poses); else None.
         Where they went (fell off, tipped over) is the caller's to judge."""
-        key = self._key(loose, fixed)
+        key = (self._key(loose, fixed), allow_wedged)
         if key not in self._settled:
-            poses = self._simulate(loose, fixed, SETTLE_S)[1]
-            rested = self.check([(mesh, pose) for (mesh, _), pose in zip(loose, poses)], fixed)
+            poses = self._simulate(loose, fixed, SETTLE_S)[2]
+            rested = self.check([(mesh, pose) for (mesh, _), pose in zip(loose, poses)], fixed, allow_wedged)
             self._settled[key] = poses if rested else None
         return self._settled[key]
 
@@ -93,8 +107,10 @@ class PhysicsRestCheck:
             cached = self._keys[id(mesh)] = (mesh, mesh_key(mesh))
         return cached[1]
 
-    def _simulate(self, loose: Sequence[Body], fixed: Sequence[Body], duration_s: float) -> tuple[bool, list[Pose]]:
-        """(whether every loose body stayed put for ``duration_s``, their world_from_part poses at the end)."""
+    def _simulate(self, loose: Sequence[Body], fixed: Sequence[Body],
+                  duration_s: float) -> tuple[bool, bool, list[Pose]]:
+        """(whether every loose body stayed put for ``duration_s``, whether some loose body is wedged at the end
+        (``wedged_force_ratio``), their world_from_part poses at the end)."""
         if self._client is None:
             self._client = BulletClient()
         pb, cid, settings = self._client.pb, self._client.client_id, self.settings
@@ -120,14 +136,17 @@ class PhysicsRestCheck:
         start = [self._corners_now(body, local) for body, local in zip(bodies, corners)]
         for _ in range(int(round(duration_s * settings.rate_hz))):
             pb.stepSimulation(physicsClientId=cid)
-        still = True
+        still, wedged = True, False
+        weight_n = GRAVITY_M_S2 * sum(self._props[self._mesh_key(mesh)].mass_kg for mesh, _ in loose)
         for body, local, before in zip(bodies, corners, start):
             moved = np.linalg.norm(self._corners_now(body, local) - before, axis=1).max()
             speed = np.linalg.norm(pb.getBaseVelocity(body, physicsClientId=cid)[0])
+            pressed_n = sum(point[9] for point in pb.getContactPoints(bodyA=body, physicsClientId=cid))
             still &= bool(moved <= self.tolerance_m and speed <= self.speed_m_s)
+            wedged |= bool(pressed_n > self.wedged_force_ratio * weight_n)
         poses = [self._world_from_com(body) @ self._props[self._mesh_key(mesh)].part_from_com.inverse()
                  for body, (mesh, _) in zip(bodies, loose)]
-        return still, poses
+        return still, wedged, poses
 
     def _world_from_com(self, body: int) -> Pose:
         position, orientation = self._client.pb.getBasePositionAndOrientation(body,

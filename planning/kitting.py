@@ -528,10 +528,8 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
                  prefer_near_xy: Sequence[float] = (0.5, 0.0), reach: Reach | None = None,
                  deadline: float = float("inf"),
                  target_rotations: dict[str, np.ndarray] | None = None,
-                 rests: Callable[[list[tuple[trimesh.Trimesh, Pose]], list[tuple[trimesh.Trimesh, Pose]]], bool]
-                 | None = None,
-                 settles: Callable[[list[tuple[trimesh.Trimesh, Pose]], list[tuple[trimesh.Trimesh, Pose]]],
-                                   list[Pose] | None] | None = None) -> list[KittingSlot]:
+                 rests: Callable[..., bool] | None = None,
+                 settles: Callable[..., list[Pose] | None] | None = None) -> list[KittingSlot]:
     """A slot for every part (returned in the order given), the largest footprints laid out first, each in the
     free place nearest ``prefer_near_xy`` (usually the jig). ``names`` must be in assembly order: a part is
     only an obstacle to the picks of parts assembled before it (the others are gone by then), and a board may
@@ -545,11 +543,13 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
     lying as it sits in the assembly (where that is stable), so that the grasps that work at the target from
     above also work at the pick; then in its stable poses, most probable first.
 
-    ``rests(loose, fixed)``, when given, confirms with physics what the geometric checks judge: whether the
-    ``loose`` (mesh, world_from_part) bodies stay where they lie on the ``fixed`` (mesh, world_from_body) ones (e.g.
-    :class:`cell.resting.PhysicsRestCheck`). It is asked once per part and rest pose on its pedestal (the same
-    anywhere on the flat table) and for every stack place. ``settles(loose, fixed)``, when given, says where such
-    bodies come to rest (world_from_part each, or None when they do not, e.g.
+    ``rests(loose, fixed, allow_wedged=False)``, when given, confirms with physics what the geometric checks judge:
+    whether the ``loose`` (mesh, world_from_part) bodies stay where they lie on the ``fixed`` (mesh, world_from_body)
+    ones, and, unless ``allow_wedged``, are not wedged into them (e.g. :class:`cell.resting.PhysicsRestCheck`). It
+    is asked once per part and rest pose on its pedestal (the same anywhere on the flat table) and for every stack
+    place; a part that rests in none of its poses unwedged is then allowed to lie wedged (a chair's frame jammed
+    across its chocks; a last resort: the arm may not pull it out). ``settles(loose, fixed, allow_wedged=False)``,
+    when given, says where such bodies come to rest (world_from_part each, or None when they do not, e.g.
     :meth:`cell.resting.PhysicsRestCheck.settle`): a part with no rest pose that the geometry or ``rests`` accepts on
     its pedestal is laid down on it and left to settle (a dished board tips onto the pedestal's rim, a tapered leg
     onto its chocks), and lies where it settles (:data:`SETTLE_MAX_TILT_DEG`, :data:`SETTLE_MAX_DROP_M`).
@@ -621,6 +621,9 @@ class _Layout:
         self.rests = None  # physics check (loose bodies, fixed bodies) -> bool, see plan_kitting
         self.settles = None  # physics (loose bodies, fixed bodies) -> where they come to rest, see plan_kitting
         self.unrested: set[str] = set()  # parts with no pose that rests on a pedestal
+        # parts that rest on a pedestal only wedged into it or its chocks (cell.resting.WEDGED_FORCE_RATIO): the
+        # physics checks of their places allow it, as the last resort
+        self.wedge_allowed: set[str] = set()
         self.tried: set[str] = set()  # parts for which some place was tried
         self.picked: set[str] = set()  # parts that some place tried lets the hand grasp clear of their support
         self.fingers_freed: set[tuple] = set()  # (part, rest pose) whose pedestal :meth:`_free_fingers` checked
@@ -690,9 +693,24 @@ class _Layout:
             tried = poses[:MAX_GROUND_POSES] if not ground else poses[:1] if upright else []
             settled = ((self._settled(name, rest_from_part), p) for rest_from_part, p in tried)
             ground += [(rest_from_part, p) for rest_from_part, p in settled if rest_from_part is not None]
+        if not ground and self.rests is not None and name not in self.wedge_allowed:
+            self.wedge_allowed.add(name)  # no pose rests unwedged: then wedged
+            self.support_cache = {key: pedestal for key, pedestal in self.support_cache.items()
+                                  if pedestal is not None or key[0] != name}
+            return self._ground_poses(name, poses)
         if not ground:
             self.unrested.add(name)
         return ground
+
+    def _rests(self, name: str, loose: list[tuple[trimesh.Trimesh, Pose]],
+               fixed: list[tuple[trimesh.Trimesh, Pose]]) -> bool:
+        """The physics check (:attr:`rests`) of part ``name``'s place, wedged allowed where it must be."""
+        return bool(self.rests(loose, fixed, allow_wedged=name in self.wedge_allowed))
+
+    def _settles(self, name: str, loose: list[tuple[trimesh.Trimesh, Pose]],
+                 fixed: list[tuple[trimesh.Trimesh, Pose]]):
+        """Where part ``name`` settles (:attr:`settles`), wedged allowed where it must be."""
+        return self.settles(loose, fixed, allow_wedged=name in self.wedge_allowed)
 
     def _settled(self, name: str, rest_from_part: np.ndarray) -> np.ndarray | None:
         """``rest_from_part`` of the part laid down in this pose on its pedestal (cradled if elongated; else wide,
@@ -704,7 +722,7 @@ class _Layout:
         mesh = self.meshes[name]
         for wide in (False, True):
             pedestal = self._pedestal_at_rest(name, rest_from_part, wide)
-            settled = self.settles([(mesh, Pose.from_matrix(rest_from_part))], self._fixed(pedestal))
+            settled = self._settles(name, [(mesh, Pose.from_matrix(rest_from_part))], self._fixed(pedestal))
             if settled is None:
                 continue
             lying = settled[0].matrix()
@@ -712,7 +730,8 @@ class _Layout:
                 continue
             lying[:2, 3] -= _footprint_centre(mesh, lying)  # centred in x-y, as rest poses are
             pedestal = self._pedestal_at_rest(name, lying, wide)
-            if self.rests is not None and not self.rests([(mesh, Pose.from_matrix(lying))], self._fixed(pedestal)):
+            if self.rests is not None and not self._rests(name, [(mesh, Pose.from_matrix(lying))],
+                                                          self._fixed(pedestal)):
                 continue
             self.support_cache[(name, np.round(lying, 9).tobytes())] = pedestal
             return lying
@@ -766,11 +785,11 @@ class _Layout:
         mesh, part = self.meshes[name], Pose.from_matrix(rest_from_part)
         usable = lambda grasp: self._usable_at_target(name, grasp, grasp_ok_at_target)  # noqa: E731
         for cut in self._cut_pedestals(name, rest_from_part, pedestal, grasps, usable):
-            if (self.rests([(mesh, part)], self._fixed(cut)) if self.rests is not None else
+            if (self._rests(name, [(mesh, part)], self._fixed(cut)) if self.rests is not None else
                     rests_stably(mesh, rest_from_part, self._top(cut))):
                 self.support_cache[key] = cut
                 return rest_from_part
-            settled = None if self.settles is None else self.settles([(mesh, part)], self._fixed(cut))
+            settled = None if self.settles is None else self._settles(name, [(mesh, part)], self._fixed(cut))
             if settled is None or not _settled_low(mesh, rest_from_part, settled[0].matrix()):
                 continue
             lying = settled[0].matrix()
@@ -778,7 +797,8 @@ class _Layout:
             lying[:2, 3] -= centre
             cut = dataclasses.replace(cut, world_from_pedestal=Pose([-centre[0], -centre[1], 0.0], [1, 0, 0, 0])
                                       @ cut.world_from_pedestal)
-            if self.rests is not None and not self.rests([(mesh, Pose.from_matrix(lying))], self._fixed(cut)):
+            if self.rests is not None and not self._rests(name, [(mesh, Pose.from_matrix(lying))],
+                                                          self._fixed(cut)):
                 continue
             settled_key = (name, np.round(lying, 9).tobytes())
             self.support_cache[settled_key] = cut
@@ -922,7 +942,7 @@ class _Layout:
                 mesh, rest_from_part, self.area.pedestal_height_m, self._top(pedestal))
             pedestal = None if chocks is None else dataclasses.replace(pedestal, chocks=chocks)
             if pedestal is not None and self.rests is not None:  # and it stays there under physics
-                if not self.rests([(mesh, Pose.from_matrix(rest_from_part))], self._fixed(pedestal)):
+                if not self._rests(name, [(mesh, Pose.from_matrix(rest_from_part))], self._fixed(pedestal)):
                     pedestal = None
             self.support_cache[key] = pedestal
         return self.support_cache[key]

@@ -52,6 +52,22 @@ def test_a_box_rests_on_its_pedestal_and_the_answer_is_remembered():
         assert check.checks == 1  # the same bodies at the same poses: simulated once
 
 
+@pytest.mark.parametrize("gap_m, rests", [(-0.001, False), (0.001, True)])
+def test_a_bar_jammed_between_two_posts_does_not_count_as_resting(gap_m, rests):
+    # a 20 cm bar lying on a slab between two posts: 1 mm narrower than the bar, the posts squeeze it, it stays put
+    # but pressed with many times its weight (it would not come out when lifted); 1 mm wider, it rests
+    bar = trimesh.creation.box((0.2, 0.02, 0.02))
+    slab = (trimesh.creation.box((0.4, 0.2, 0.02)), Pose([0.0, 0.0, -0.01], [1, 0, 0, 0]))
+    posts = [(trimesh.creation.box((0.03, 0.01, 0.03)), Pose([x, side * (0.015 + gap_m / 2), 0.015], [1, 0, 0, 0]))
+             for x in (-0.08, 0.08) for side in (-1.0, 1.0)]
+    loose = [(bar, Pose([0.0, 0.0, 0.01], [1, 0, 0, 0]))]
+    with PhysicsRestCheck() as check:
+        assert check(loose, [slab] + posts) is rests
+        assert check(loose, [slab] + posts, allow_wedged=True)  # it does stay put (from the same simulation)
+        assert check(loose, [slab]) is True  # without the posts it rests either way
+        assert check.checks == 2
+
+
 def test_a_tall_frame_between_chocks_falls_over():
     # the geometry says chocks hold it (a chair's side frame of tubes standing on two feet); physics says no
     loose, fixed, stable, chocks = _on_pedestal(_frame(0.25))
@@ -106,6 +122,29 @@ def test_kitting_never_stands_a_frame_where_physics_says_it_falls():
         table = (trimesh.creation.box((4.0, 4.0, 0.02)), Pose([0, 0, -0.01], [1, 0, 0, 0]))
         assert check([(frame, slot.world_from_part)], [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal),
                                                        table])
+
+
+def test_kitting_lays_a_part_wedged_only_where_it_rests_in_no_pose_unwedged():
+    # a checker that finds every resting body wedged (its contacts carry its weight: a ratio of 1 > 0.5): kitting
+    # still places the frame, allowing it wedged as the last resort; with the usual ratio, in the same place
+    from planning.grasp import antipodal_grasps
+    from planning.kitting import KittingArea, plan_kitting
+
+    frame = _frame(0.25)
+    area = KittingArea(centre_xy=(0.0, 0.0), inner_radius_m=0.32, outer_radius_m=0.72, table_min_xy=(-0.55, -0.8),
+                       table_max_xy=(0.95, 0.8), table_z_m=0.0, pedestal_height_m=PEDESTAL_HEIGHT_M,
+                       keep_out=(((0.25, -0.25), (0.75, 0.25)),), gap_m=0.06)
+    grasps = antipodal_grasps(frame, np.random.default_rng(0))
+    slots = []
+    for ratio in (0.5, 3.0):
+        with PhysicsRestCheck(wedged_force_ratio=ratio) as check:
+            slots.append(plan_kitting(["frame"], [frame], {"frame": grasps}, lambda name, grasp: True, area,
+                                      rests=check, settles=check.settle)[0])
+            table = (trimesh.creation.box((4.0, 4.0, 0.02)), Pose([0, 0, -0.01], [1, 0, 0, 0]))
+            fixed = [(slots[-1].pedestal.mesh(), slots[-1].pedestal.world_from_pedestal), table]
+            assert check([(frame, slots[-1].world_from_part)], fixed) is (ratio > 1.0)
+            assert check([(frame, slots[-1].world_from_part)], fixed, allow_wedged=True)
+    assert np.allclose(slots[0].world_from_part.matrix(), slots[1].world_from_part.matrix())
 
 
 def _sway_of_top_mm(mesh: trimesh.Trimesh, chocks, nudge_rad_s: float = 0.2) -> float:
