@@ -309,6 +309,13 @@ class Pipeline:
             self.entries[task.part]["target_world_from_part"] = pose_json(task.world_from_target)
         for slot in plan.slots:
             self.entries[slot.part]["kitting_world_from_part"] = pose_json(slot.world_from_part)
+            self.entries[slot.part]["kitting_wedged"] = slot.wedged
+            if slot.wedged:
+                from cell.resting import WEDGED_FORCE_RATIO
+
+                self.console.say(f"    kit: {slot.part!r} rests in none of its poses unless wedged into its pedestal "
+                                 f"or chocks (its contacts press it with over {WEDGED_FORCE_RATIO:g} times its "
+                                 "weight), and lies so: the arm may not pull it out")
             self.entries[slot.part]["grasp"] = {"part_from_tcp": pose_json(slot.grasp.part_from_tcp),
                                                 "width_m": slot.grasp.width_m, "opening_m": slot.grasp.opening_m,
                                                 "pick_opening_m": slot.grasp.opening_at_pick_m}

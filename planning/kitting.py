@@ -148,6 +148,7 @@ class KittingSlot:
     reach: object = None  # what ``Reach.at_pick`` returned (e.g. the arm configurations), for ``still_clear``
     rests_on: str | None = None  # the board it lies on (picked after it); None: on its own pedestal
     alternatives: tuple = ()  # further (grasp, reach) pairs that also work here, best first (for the motion planner)
+    wedged: bool = False  # it rests in none of its poses unless wedged into its pedestal or chocks, and lies so
 
 
 class Reach:
@@ -1023,7 +1024,7 @@ class _Layout:
             surviving[slot.part] = kept
         mine = [first] + [option for option, _ in zip(own_options, range(GRASP_OPTIONS - 1))]
         slot = KittingSlot(name, world_from_part, pedestal, first[0], probability, corners, first[1],
-                           None if base is None else base.part)
+                           None if base is None else base.part, wedged=name in self.wedge_allowed)
         return slot, mine, surviving
 
     def _bodies(self, slot: KittingSlot, name: str) -> list[tuple[trimesh.Trimesh, Pose]]:

@@ -145,6 +145,7 @@ def test_kitting_lays_a_part_wedged_only_where_it_rests_in_no_pose_unwedged():
             assert check([(frame, slots[-1].world_from_part)], fixed) is (ratio > 1.0)
             assert check([(frame, slots[-1].world_from_part)], fixed, allow_wedged=True)
     assert np.allclose(slots[0].world_from_part.matrix(), slots[1].world_from_part.matrix())
+    assert slots[0].wedged and not slots[1].wedged  # the slot says so (report.json: kitting_wedged)
 
 
 def _sway_of_top_mm(mesh: trimesh.Trimesh, chocks, nudge_rad_s: float = 0.2) -> float:
