@@ -315,7 +315,7 @@ class Pipeline:
 
                 self.console.say(f"    kit: {slot.part!r} rests in none of its poses unless wedged into its pedestal "
                                  f"or chocks (its contacts press it with over {WEDGED_FORCE_RATIO:g} times its "
-                                 "weight), and lies so: the arm may not pull it out")
+                                 "weight), and lies so: the arm might not pull it out")
             self.entries[slot.part]["grasp"] = {"part_from_tcp": pose_json(slot.grasp.part_from_tcp),
                                                 "width_m": slot.grasp.width_m, "opening_m": slot.grasp.opening_m,
                                                 "pick_opening_m": slot.grasp.opening_at_pick_m}

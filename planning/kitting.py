@@ -549,7 +549,7 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
     ones, and, unless ``allow_wedged``, are not wedged into them (e.g. :class:`cell.resting.PhysicsRestCheck`). It
     is asked once per part and rest pose on its pedestal (the same anywhere on the flat table) and for every stack
     place; a part that rests in none of its poses unwedged is then allowed to lie wedged (a chair's frame jammed
-    across its chocks; a last resort: the arm may not pull it out). ``settles(loose, fixed, allow_wedged=False)``,
+    across its chocks; a last resort: the arm might not pull it out). ``settles(loose, fixed, allow_wedged=False)``,
     when given, says where such bodies come to rest (world_from_part each, or None when they do not, e.g.
     :meth:`cell.resting.PhysicsRestCheck.settle`): a part with no rest pose that the geometry or ``rests`` accepts on
     its pedestal is laid down on it and left to settle (a dished board tips onto the pedestal's rim, a tapered leg
