@@ -42,13 +42,14 @@ REST_SPEED_M_S = 0.004
 """... nor one whose centre still moves faster than this at the end (a slow creep off its support)."""
 WEDGED_FORCE_RATIO = 3.0
 """A loose body pressed by contacts whose normal forces sum to more than this times the weight of all the loose
-bodies is wedged. Resting, a body's contacts carry its weight and that of any body on it (ratio 1 to 2 measured);
-one jammed into its support is pressed far harder (12 to 55 times measured) and is held there by friction when
-lifted. A chair's frame of tubes lying between chocks (chair_bertil_0148's part_00, 0.83 kg) was jammed across them
-at both ends, 1.2 mm into them, with 258 N of contact, 30 times its weight. It stayed put, so it passed as resting.
-In the program, an arm whose shoulder had less torque to spare (another IK solution) stalled lifting it and tore it
-out with a jerk that broke joint 7's velocity limit. A wedged body counts as resting only where the caller allows it
-(``allow_wedged``): the kit takes such a place only for a part that rests unwedged in none of its poses."""
+bodies is wedged. Resting, a body's contacts carry its weight and that of any body on it (0.2 to 2.2 measured,
+under 1 while still moving); one jammed into its support is pressed far harder (12 to 55 measured) and is held
+there by friction when lifted. A chair's frame of tubes lying between chocks (chair_bertil_0148's part_00,
+0.83 kg) was jammed across them at both ends, 1.2 mm into them, with 258 N of contact, 30 times its weight. It
+stayed put, so it passed as resting. In the program, an arm whose shoulder had less torque to spare (another IK
+solution) stalled lifting it and tore it out with a jerk that broke joint 7's velocity limit. A wedged body counts
+as resting only where the caller allows it (``allow_wedged``): the kit takes such a place only for a part that
+rests unwedged in none of its poses."""
 SETTLE_S = 1.5
 """Simulated seconds :meth:`PhysicsRestCheck.settle` lets the bodies move before it reads where they lie."""
 
@@ -59,8 +60,8 @@ class PhysicsRestCheck:
     """``check(loose, fixed)``: whether every ``loose`` (mesh, world_from_part) stays where it is, within
     :data:`REST_MOTION_M` over :data:`REST_CHECK_S`, among the ``fixed`` (mesh, world_from_body) bodies (pedestals,
     the table) under gravity, and is not wedged there (pressed with over ``wedged_force_ratio`` times the loose
-    bodies' weight, :data:`WEDGED_FORCE_RATIO`) unless ``allow_wedged``. One
-    headless client is reused for every check; close it (or use ``with``)."""
+    bodies' weight, :data:`WEDGED_FORCE_RATIO`) unless ``allow_wedged``. One headless client is reused for every
+    check; close it (or use ``with``)."""
 
     def __init__(self, settings: SimSettings | None = None, duration_s: float = REST_CHECK_S,
                  tolerance_m: float = REST_MOTION_M, speed_m_s: float = REST_SPEED_M_S,
