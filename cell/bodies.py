@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import HalfspaceIntersection
 
-from planning.convex import convex_pieces, mesh_key
+from planning.convex import convex_hull, convex_pieces, mesh_key
 from planning.payload import MassProperties
 from planning.pose import Pose
 
@@ -24,7 +24,7 @@ from planning.pose import Pose
 def inset(piece: trimesh.Trimesh, distance_m: float) -> trimesh.Trimesh:
     """The convex ``piece`` with every face moved inwards by ``distance_m`` (metres; the intersection of its faces'
     half-spaces); a piece too thin for that is returned as it is."""
-    hull = piece.convex_hull
+    hull = convex_hull(piece.vertices)
     if distance_m <= 0.0:
         return hull
     normals = np.asarray(hull.face_normals, dtype=np.float64)

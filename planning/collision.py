@@ -17,7 +17,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import ConvexHull
 
-from planning.convex import convex_pieces
+from planning.convex import convex_hull, convex_pieces
 from planning.gripper import convex_to_fcl
 from planning.pose import Pose
 
@@ -212,7 +212,7 @@ def shrunk(part: ConvexPart, margin_m: float) -> ConvexPart:
         low, high = vertices.min(axis=0), vertices.max(axis=0)
         centre, extent = 0.5 * (low + high), high - low
         scale = np.clip((extent - 2.0 * margin_m) / np.maximum(extent, 1e-12), 0.05, None)
-        pieces.append(trimesh.convex.convex_hull((vertices - centre) * scale + centre))
+        pieces.append(convex_hull((vertices - centre) * scale + centre))
     return ConvexPart(
         name=part.name,
         geometries=[convex_to_fcl(p.vertices, p.faces) for p in pieces],

@@ -28,6 +28,13 @@ def cache_dir() -> Path:
     return Path(root) if root else Path.home() / ".cache" / "image-assembly" / "convex"
 
 
+def convex_hull(points: np.ndarray) -> trimesh.Trimesh:
+    """The convex hull of ``points`` (N, 3). A flat piece's hull has no volume, and trimesh, orienting its faces,
+    divides by that volume: the warning it raises (a divide by zero) is silenced here, the hull kept as it is."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return trimesh.convex.convex_hull(points)
+
+
 def mesh_key(mesh: trimesh.Trimesh) -> str:
     digest = hashlib.sha256()
     digest.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())

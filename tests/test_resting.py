@@ -2,6 +2,7 @@
 
 import dataclasses
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +42,23 @@ def _on_pedestal(mesh: trimesh.Trimesh):
     pedestal = dataclasses.replace(pedestal, chocks=chocks or ())
     table = (trimesh.creation.box((2.0, 2.0, 0.02)), Pose([0.0, 0.0, -PEDESTAL_HEIGHT_M - 0.01], [1, 0, 0, 0]))
     return [(mesh, Pose.from_matrix(rest))], [(pedestal.mesh(), pedestal.world_from_pedestal), table], stable, chocks
+
+
+def test_a_flat_piece_is_made_a_body_without_warnings():
+    # a part whose mesh holds a flat patch (a label): its convex piece has no volume, and trimesh warned ("divide by
+    # zero") in the middle of a run's output as it oriented that hull's faces, for the simulator and the planner
+    from cell.bodies import inset
+    from planning.collision import ConvexPart, shrunk
+    from planning.convex import convex_hull
+
+    label = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.05, 0.05, 0.0], [0.0, 0.05, 0.0]])
+    patch = trimesh.Trimesh(label, [[0, 1, 2], [0, 2, 3]], process=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        hull = convex_hull(label)
+        assert inset(patch, 0.00025).vertices.shape == hull.vertices.shape  # too thin to inset: kept as it is
+        assert len(shrunk(ConvexPart.from_mesh("label", patch), -0.003).piece_vertices) == 1
+    assert hull.volume == 0.0 and np.allclose(hull.bounds, [[0.0, 0.0, 0.0], [0.05, 0.05, 0.0]])
 
 
 def test_a_box_rests_on_its_pedestal_and_the_answer_is_remembered():
