@@ -74,7 +74,7 @@ class PhysicsRestCheck:
         self._props: dict[str, MassProperties] = {}
         self.checks = 0  # how many simulations ran (for profiling and tests)
         self._answers: dict[tuple, tuple[bool, bool]] = {}  # the same bodies at the same poses: (still, wedged)
-        self._settled: dict[tuple, list[Pose] | None] = {}
+        self._settled: dict[tuple, list[Pose]] = {}  # the same bodies at the same poses: where they settle
         self._keys: dict[int, tuple[trimesh.Trimesh, str]] = {}  # id(mesh) -> (mesh, mesh_key): hashing is slow
 
     def __call__(self, loose: Sequence[Body], fixed: Sequence[Body], allow_wedged: bool = False) -> bool:
@@ -91,12 +91,12 @@ class PhysicsRestCheck:
         """Where the ``loose`` bodies lie (world_from_part, in their order) after :data:`SETTLE_S` under gravity
         among the ``fixed`` ones, provided they then rest there (:meth:`check` from those poses); else None.
         Where they went (fell off, tipped over) is the caller's to judge."""
-        key = (self._key(loose, fixed), allow_wedged)
-        if key not in self._settled:
-            poses = self._simulate(loose, fixed, SETTLE_S)[2]
-            rested = self.check([(mesh, pose) for (mesh, _), pose in zip(loose, poses)], fixed, allow_wedged)
-            self._settled[key] = poses if rested else None
-        return self._settled[key]
+        key = self._key(loose, fixed)
+        if key not in self._settled:  # where they lie does not depend on allow_wedged, only whether that counts
+            self._settled[key] = self._simulate(loose, fixed, SETTLE_S)[2]
+        poses = self._settled[key]
+        rested = self.check([(mesh, pose) for (mesh, _), pose in zip(loose, poses)], fixed, allow_wedged)
+        return poses if rested else None
 
     def _key(self, loose: Sequence[Body], fixed: Sequence[Body]) -> tuple:
         key = tuple((self._mesh_key(mesh), np.round(pose.matrix(), 6).tobytes()) for mesh, pose in (*loose, *fixed))
