@@ -35,7 +35,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from scipy.optimize import linprog
 
+from planning.convex import convex_pieces
 from planning.fixture import FINGER_CLEARANCE_M, MIN_PAD_FRACTION
 from planning.grasp import APPROACH_M, Grasp, feasible_grasps, grasp_pose_key
 from planning.gripper import MAX_OPENING_M, clearance_gripper
@@ -299,6 +301,13 @@ def cradle_chocks(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: f
             end += inward * CHOCK_LENGTH_M
         if len(beside) == 0:
             return None
+        # the chock clears the part all along its length (a bent bar runs across it), and the part's convex
+        # pieces, which the simulation gives it and which bulge beyond the mesh: chocks set from the mesh's section
+        # at their middle had chair_ivar_0668's frame of tubes 1.3 mm into them from the start, wedged there
+        in_slab = rested[(rested[:, along] >= lo) & (rested[:, along] <= hi) & (rested[:, 2] <= rise)]
+        beside = np.concatenate([beside, in_slab, *(_section_below(mesh, rest_from_part, along, at, rise)
+                                                    for at in (lo, hi)),
+                                 _pieces_beside(mesh, rest_from_part, along, lo, hi, rise)])
         for side in (-1.0, 1.0):
             face = (beside[:, across].max() if side > 0 else -beside[:, across].min()) + CHOCK_CLEARANCE_M
             centre = np.zeros(3)
@@ -347,6 +356,30 @@ def _section_below(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, axis: int,
     t = np.linspace(0.0, 1.0, 11)[None, :, None]
     points = (segments[:, :1] * (1 - t) + segments[:, 1:] * t).reshape(-1, 3)
     return points[points[:, 2] <= below_z]
+
+
+def _pieces_beside(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, axis: int, lo: float, hi: float,
+                   below_z: float) -> np.ndarray:
+    """The points (rest frame) of the part's convex pieces (:func:`planning.convex.convex_pieces`, the shapes the
+    simulation gives it) farthest to either side across ``axis`` within the slab ``lo <= rest[axis] <= hi`` below
+    ``below_z``, two per piece that reaches into it: what a chock beside that stretch of the part must clear."""
+    across = np.zeros(3)
+    across[1 - axis] = 1.0
+    slab = np.zeros((3, 3))
+    slab[0, axis], slab[1, axis], slab[2, 2] = -1.0, 1.0, 1.0
+    slab_b = np.array([-lo, hi, below_z])
+    rotation, shift = rest_from_part[:3, :3], rest_from_part[:3, 3]
+    points = [np.zeros((0, 3))]
+    for piece in convex_pieces(mesh):
+        normals = np.asarray(piece.face_normals) @ rotation.T  # rest frame: normals @ x <= offsets inside
+        offsets = np.einsum("ij,ij->i", np.asarray(piece.face_normals), piece.triangles[:, 0]) + normals @ shift
+        a_ub, b_ub = np.vstack([normals, slab]), np.concatenate([offsets + 1e-9, slab_b])
+        for sign in (-1.0, 1.0):
+            result = linprog(-sign * across, A_ub=a_ub, b_ub=b_ub, bounds=(None, None), method="highs")
+            if result.status != 0:
+                break  # the piece does not reach into the slab
+            points.append(result.x[None, :])
+    return np.concatenate(points)
 
 
 def _inside_convex(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
@@ -656,8 +689,23 @@ class _Layout:
         # on the ground, the poses where more of the grasps wanted at the target pick from above come first
         ground = sorted(self._ground_poses(name, poses),
                         key=lambda pose: -_picks_from_above(grasps[:SCORED_GRASPS], pose[0]))
-        stack_first = _is_board(mesh)
-        for attempt in ("stack", "ground") if stack_first else ("ground", "stack"):
+        found = self._place_among(name, mesh, grasps, grasp_ok_at_target, poses, ground, stack_first=_is_board(mesh))
+        if found is None and self.settles is not None:
+            # none of the poses it rests in as laid gives a place: the others, once settled (a frame of round tubes
+            # standing on edge leans onto its chocks, and rests only then)
+            settled = [pose for pose in self._settled_poses(name, poses) if not any(
+                np.allclose(pose[0], other[0]) for other in ground)]
+            found = self._place_among(name, mesh, grasps, grasp_ok_at_target, poses, settled, stack_first=None)
+        return found
+
+    def _place_among(self, name: str, mesh: trimesh.Trimesh, grasps: list[Grasp], grasp_ok_at_target,
+                     poses: list[tuple[np.ndarray, float]], ground: list[tuple[np.ndarray, float]],
+                     stack_first: bool | None) -> KittingSlot | None:
+        """The first place found for the part: on the boards of a stack in the first of ``poses`` and on the
+        ground in those of ``ground`` (stack first when ``stack_first``, ground first when False, ground only
+        when None); None when none works."""
+        attempts = ("ground",) if stack_first is None else ("stack", "ground") if stack_first else ("ground", "stack")
+        for attempt in attempts:
             for rest_from_part, probability in poses[:1] if attempt == "stack" else ground[:MAX_GROUND_POSES]:
                 pose_grasps = grasps
                 if attempt == "ground":
@@ -691,9 +739,7 @@ class _Layout:
         ground = [pose for pose in poses if self._support(name, pose[0]) is not None]
         if self.settles is not None:
             upright = name in self.target_rotations and self._support(name, poses[0][0]) is None
-            tried = poses[:MAX_GROUND_POSES] if not ground else poses[:1] if upright else []
-            settled = ((self._settled(name, rest_from_part), p) for rest_from_part, p in tried)
-            ground += [(rest_from_part, p) for rest_from_part, p in settled if rest_from_part is not None]
+            ground += self._settled_poses(name, poses if not ground else poses[:1] if upright else [])
         if not ground and self.rests is not None and name not in self.wedge_allowed:
             self.wedge_allowed.add(name)  # no pose rests unwedged: then wedged
             self.support_cache = {key: pedestal for key, pedestal in self.support_cache.items()
@@ -702,6 +748,12 @@ class _Layout:
         if not ground:
             self.unrested.add(name)
         return ground
+
+    def _settled_poses(self, name: str, poses: list[tuple[np.ndarray, float]]) -> list[tuple[np.ndarray, float]]:
+        """Where the part lies once settled (:meth:`_settled`) when laid down in each of the first
+        :data:`MAX_GROUND_POSES` of ``poses``, for those it settles in."""
+        settled = ((self._settled(name, rest_from_part), p) for rest_from_part, p in poses[:MAX_GROUND_POSES])
+        return [(rest_from_part, p) for rest_from_part, p in settled if rest_from_part is not None]
 
     def _rests(self, name: str, loose: list[tuple[trimesh.Trimesh, Pose]],
                fixed: list[tuple[trimesh.Trimesh, Pose]]) -> bool:

@@ -150,6 +150,56 @@ def test_a_round_leg_would_roll_off_a_pedestal_and_is_cradled_by_chocks():
     assert sides == {-1.0, 1.0}
 
 
+def _bent_bar(radius_m: float = 0.4, half_angle_rad: float = np.radians(20.0), half_width_m: float = 0.006,
+              rings: int = 25) -> trimesh.Trimesh:
+    """A bar of square section 12 mm wide bent along an arc in the x-y plane (28 cm long, bowed 2.4 cm)."""
+    vertices = []
+    for angle in np.linspace(-half_angle_rad, half_angle_rad, rings):
+        centre = np.array([radius_m * np.sin(angle), radius_m * (np.cos(angle) - 1.0), 0.0])
+        outwards = np.array([np.sin(angle), np.cos(angle), 0.0])
+        for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+            vertices.append(centre + half_width_m * (a * outwards + b * np.array([0.0, 0.0, 1.0])))
+    faces = [[4 * i + k, 4 * i + (k + 1) % 4, 4 * (i + 1) + (k + 1) % 4] for i in range(rings - 1) for k in range(4)]
+    faces += [[4 * i + k, 4 * (i + 1) + (k + 1) % 4, 4 * (i + 1) + k] for i in range(rings - 1) for k in range(4)]
+    last = 4 * (rings - 1)
+    faces += [[0, 2, 1], [0, 3, 2], [last, last + 1, last + 2], [last, last + 2, last + 3]]
+    bar = trimesh.Trimesh(np.array(vertices), faces)
+    trimesh.repair.fix_normals(bar)
+    return bar
+
+
+def test_chocks_clear_a_bent_bar_and_its_convex_pieces_all_along_them():
+    # a chock is 2 cm long; at the ends of a bent bar the bar runs across it, and the convex pieces the simulation
+    # gives the bar bulge beyond its mesh. Chocks set from the bar's section at their middle went 4 mm into it
+    # (a real chair's frame of tubes lay 1.3 mm into its chocks from the start, jammed there)
+    from planning.convex import convex_pieces
+    from planning.kitting import CHOCK_CLEARANCE_M, cradle_chocks
+
+    bar = _bent_bar()
+    assert bar.is_watertight
+    rest_from_part, _ = stable_rest_poses(bar)[0]
+    chocks = cradle_chocks(bar, rest_from_part, 0.12, inwards=False)
+    assert chocks is not None and len(chocks) == 4
+    pedestal_from_part = trimesh.transformations.translation_matrix([0.0, 0.0, 0.06]) @ rest_from_part
+    shapes = {"mesh": bar.copy().apply_transform(pedestal_from_part)}
+    shapes.update({f"piece {i}": piece.copy().apply_transform(pedestal_from_part)
+                   for i, piece in enumerate(convex_pieces(bar))})
+    for name, shape in shapes.items():
+        manager = trimesh.collision.CollisionManager()
+        manager.add_object(name, shape)
+        for size, pose in chocks:
+            post = trimesh.creation.box(size, transform=pose.matrix())
+            assert not manager.in_collision_single(post), (name, pose.position)
+        gaps = [manager.min_distance_single(trimesh.creation.box(size, transform=pose.matrix()))
+                for size, pose in chocks]
+        assert min(gaps) > 0.8 * CHOCK_CLEARANCE_M, name
+    # and the posts still cradle the bar: each within a few millimetres of it
+    manager = trimesh.collision.CollisionManager()
+    manager.add_object("mesh", shapes["mesh"])
+    for size, pose in chocks:
+        assert manager.min_distance_single(trimesh.creation.box(size, transform=pose.matrix())) < 0.003
+
+
 def test_a_square_beam_rests_without_chocks():
     from planning.kitting import rests_stably
 
