@@ -691,8 +691,8 @@ class _Layout:
                         key=lambda pose: -_picks_from_above(grasps[:SCORED_GRASPS], pose[0]))
         found = self._place_among(name, mesh, grasps, grasp_ok_at_target, poses, ground, stack_first=_is_board(mesh))
         if found is None and self.settles is not None:
-            # none of the poses it rests in as laid gives a place: the others, once settled (a frame of round tubes
-            # standing on edge leans onto its chocks, and rests only then)
+            # none of the poses it rests in as laid gives a place: those it settles in (chair_ivar_0668's frame of
+            # tubes, lying flat, rocks on its tubes as laid and rests only once settled, a little tilted)
             settled = [pose for pose in self._settled_poses(name, poses) if not any(
                 np.allclose(pose[0], other[0]) for other in ground)]
             found = self._place_among(name, mesh, grasps, grasp_ok_at_target, poses, settled, stack_first=None)
