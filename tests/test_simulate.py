@@ -255,6 +255,23 @@ def test_parts_overlapping_at_their_targets_fit(arm):
     assert {p.name: p for p in colliding.parts}["b"].position_error_m > SimSettings().position_tolerance_m
 
 
+def test_parts_overlapping_a_twentieth_of_a_millimetre_fit_too(arm):
+    """b's convex body lies 0.05 mm into a's at its target (0.55 mm of mesh, less the joint clearance's insets):
+    even so shallow a pair fits (table_klubbo_0743's leg, 0.09 mm into its top and colliding, slid flush under
+    it, turned in the hand and jammed 25 mm short)."""
+    depth = 0.00005
+    sunk_m = SimSettings().joint_clearance_m + depth
+    b = replace(PARTS[1], world_from_target=at(0.57 - 0.03, 0.0, PAD_TOP_M + 0.04 + 0.015 - sunk_m))
+    steps, q = pick_and_place(arm, PARTS[0], HOME, CLOSED_M, OPENING_M)
+    more, q = pick_and_place(arm, b, q, CLOSED_M, OPENING_M)
+    program = Program(steps + more + [MotionStep("return home", timed(q, HOME))], initial_width_m=OPENING_M)
+    result = simulate_program(program, [PARTS[0], b], STATIC, BASE)
+    assert result.success, result.failure_words()
+    (pair,) = result.overlaps_at_target
+    assert pair[:2] == ("a", "b") and abs(pair[2] - depth) < 1e-5
+    assert {p.name: p for p in result.parts}["b"].fastened_to == ("a",)
+
+
 def test_the_grip_holds_from_the_moment_both_fingers_press_on_the_part(arm):
     """a is 40 mm wide, the fingers start 10 mm wider and close at 0.05 m/s each: both press on it within about
     0.1 s of a 2 s close, and it is welded then (squeezed on for the rest of the close, PyBullet's finger contacts
