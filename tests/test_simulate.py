@@ -222,13 +222,20 @@ def test_thin_part_held_by_its_edges_keeps_its_grasp_and_slides_in_flush(arm):
     assert by_name["slat"].fastened_to == ("a",) and by_name["slat"].grasp_seated
 
 
-def test_fastened_across_the_planned_gap(arm):
-    """b is planned 3 mm above a (connectors bridge such gaps; the sequence planner counts parts within a few
-    millimetres as joined): released there, it is fastened to a, which holds its overhang."""
-    b = replace(PARTS[1], world_from_target=at(0.57 - 0.03, 0.0, PAD_TOP_M + 0.04 + 0.015 + 0.003))
+def a_then_b(arm, b_raised_m: float) -> tuple[SimPart, Program]:
+    """b with its target ``b_raised_m`` above where it rests on a (negative: sunk into a), and the program that picks
+    and places a, then b (top-down, no swing), then returns home."""
+    b = replace(PARTS[1], world_from_target=at(0.57 - 0.03, 0.0, PAD_TOP_M + 0.04 + 0.015 + b_raised_m))
     steps, q = pick_and_place(arm, PARTS[0], HOME, CLOSED_M, OPENING_M)
     more, q = pick_and_place(arm, b, q, CLOSED_M, OPENING_M)
     program = Program(steps + more + [MotionStep("return home", timed(q, HOME))], initial_width_m=OPENING_M)
+    return b, program
+
+
+def test_fastened_across_the_planned_gap(arm):
+    """b is planned 3 mm above a (connectors bridge such gaps; the sequence planner counts parts within a few
+    millimetres as joined): released there, it is fastened to a, which holds its overhang."""
+    b, program = a_then_b(arm, 0.003)
     result = simulate_program(program, [PARTS[0], b], STATIC, BASE)
     assert result.success, result.failure_words()
     assert {p.name: p for p in result.parts}["b"].fastened_to == ("a",)
@@ -239,10 +246,7 @@ def test_parts_overlapping_at_their_targets_fit(arm):
     does not collide, so b reaches its target and is fastened to a, and the result names the pair and the depth.
     With the pair colliding as usual (an overlap tolerance beyond the depth), physics pushes b out, off target."""
     sunk_m = 0.012
-    b = replace(PARTS[1], world_from_target=at(0.57 - 0.03, 0.0, PAD_TOP_M + 0.04 + 0.015 - sunk_m))
-    steps, q = pick_and_place(arm, PARTS[0], HOME, CLOSED_M, OPENING_M)
-    more, q = pick_and_place(arm, b, q, CLOSED_M, OPENING_M)
-    program = Program(steps + more + [MotionStep("return home", timed(q, HOME))], initial_width_m=OPENING_M)
+    b, program = a_then_b(arm, -sunk_m)
     result = simulate_program(program, [PARTS[0], b], STATIC, BASE)
     assert result.success, result.failure_words()
     (pair,) = result.overlaps_at_target
@@ -261,10 +265,7 @@ def test_parts_overlapping_a_twentieth_of_a_millimetre_fit_too(arm):
     it, turned in the hand and jammed 25 mm short)."""
     depth = 0.00005
     sunk_m = SimSettings().joint_clearance_m + depth
-    b = replace(PARTS[1], world_from_target=at(0.57 - 0.03, 0.0, PAD_TOP_M + 0.04 + 0.015 - sunk_m))
-    steps, q = pick_and_place(arm, PARTS[0], HOME, CLOSED_M, OPENING_M)
-    more, q = pick_and_place(arm, b, q, CLOSED_M, OPENING_M)
-    program = Program(steps + more + [MotionStep("return home", timed(q, HOME))], initial_width_m=OPENING_M)
+    b, program = a_then_b(arm, -sunk_m)
     result = simulate_program(program, [PARTS[0], b], STATIC, BASE)
     assert result.success, result.failure_words()
     (pair,) = result.overlaps_at_target
