@@ -42,6 +42,8 @@ from planning.kitting import (
     HAND_CLEARANCE_M,
     NO_GRASP_AT_TARGET,
     NO_PLACE,
+    OUT_OF_TIME,
+    TOO_LARGE,
     KittingArea,
     KittingError,
     KittingSlot,
@@ -83,6 +85,7 @@ class PlanningFailed(RuntimeError):
         self.stage, self.part = stage, part
         self.seconds: dict[str, float] = {}  # time spent before failing, per stage
         self.beyond_reach = False  # the part failed at its target only for want of inverse kinematics
+        self.kind: str | None = None  # a kitting failure's :class:`planning.kitting.KittingError` kind
 
 
 @dataclass
@@ -516,6 +519,9 @@ def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed
     spent: dict[str, float] = {}
     too_large = False  # no placement of the jig makes the kitting ring larger
     why_again = None  # the last failure, said once another placement is tried (the final error lists them all)
+    # the parts that failed kitting at a placement tried: laid out first at the next (a part whose grasps fail
+    # at every place fails there at once, not after the whole kit is laid out; one that needs a place gets it)
+    lay_out_first: tuple[str, ...] = ()
     for turn, slide in ((turn, slide) for turn in JIG_TURNS_DEG for slide in (0.0, JIG_SLIDE_M)):
         if slide and not (failures[-1][0] == turn and failures[-1][2].beyond_reach):
             continue  # slid only where the arm did not reach a part's target at this turn
@@ -530,9 +536,12 @@ def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed
             stage = None if on_stage is None else (
                 lambda name, _turn=turn, _slide=slide: on_stage(name, _turn, _slide))
             plan = _plan_with_jig(jig_placed(scene, turn, slide), assembly, sequence, seed, motion, progress,
-                                  stage, deadline, payloads, rests, on_note)
+                                  stage, deadline, payloads, rests, on_note, lay_out_first)
         except PlanningFailed as exc:
             failures.append((turn, slide, exc))
+            if exc.stage == "kitting" and exc.part and exc.kind not in (OUT_OF_TIME, TOO_LARGE) \
+                    and exc.part not in lay_out_first:
+                lay_out_first += (exc.part,)
             why_again = f"{exc.stage} failed with the jig {_placement_words(turn, slide)}: {exc}"
             for name, value in getattr(exc, "seconds", {}).items():
                 spent[name] = spent.get(name, 0.0) + value
@@ -564,7 +573,7 @@ class _Kit:
     def __init__(self, scene: Scene, assembly: Assembly, sequence: SequenceResult, panda: Panda,
                  static: list[StaticObstacle], targets: dict[str, Pose], hand_check, seed: int,
                  deadline: float, rests: PhysicsRestCheck | None = None,
-                 payloads: dict[str, MassProperties] | None = None) -> None:
+                 payloads: dict[str, MassProperties] | None = None, lay_out_first: tuple[str, ...] = ()) -> None:
         world_from_assembly = scene.fixture.world_from_assembly
         order = sequence.order
         self.steps = {s.part: s for s in sequence.steps}
@@ -604,7 +613,7 @@ class _Kit:
                                       _kitting_area(scene, assembly), prefer_near_xy=world_from_assembly.position[:2],
                                       reach=kit_reach, deadline=deadline,
                                       target_rotations={n: targets[n].rotation for n in order}, rests=rests,
-                                      settles=None if rests is None else rests.settle)
+                                      settles=None if rests is None else rests.settle, lay_out_first=lay_out_first)
         except KittingError as exc:
             words = kit_reach.weight_words(exc.part) if exc.part else ""
             if words and exc.kind in (NO_GRASP_AT_TARGET, NO_PLACE):
@@ -645,6 +654,7 @@ class _KitFailed(Exception):
 def _kitting_failed(exc: KittingError, started: float, context: str = "",
                     beyond_reach: bool = False) -> PlanningFailed:
     error = PlanningFailed("kitting", f"{exc} ({context})" if context else str(exc), exc.part)
+    error.kind = exc.kind
     error.seconds = {"kitting": time.perf_counter() - started}
     error.beyond_reach = beyond_reach
     return error
@@ -667,7 +677,7 @@ class _PlacedBefore:
 def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: int,
                    motion: MotionSettings | None, progress, on_stage, deadline: float,
                    payloads: dict[str, MassProperties], rests: PhysicsRestCheck | None = None,
-                   on_note=None) -> CellPlan:
+                   on_note=None, lay_out_first: tuple[str, ...] = ()) -> CellPlan:
     on_stage = on_stage or (lambda name: None)
     seconds: dict[str, float] = {}
     world_from_assembly = scene.fixture.world_from_assembly
@@ -688,7 +698,7 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
         for reorder in range(REORDERS + 1):
             try:
                 kit = _Kit(scene, assembly, sequence, panda, static, targets, hand_check, seed, deadline, rests,
-                           payloads)
+                           payloads, lay_out_first)
                 break
             except _KitFailed as failed:
                 exc = failed.error

@@ -563,12 +563,15 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
                  deadline: float = float("inf"),
                  target_rotations: dict[str, np.ndarray] | None = None,
                  rests: Callable[..., bool] | None = None,
-                 settles: Callable[..., list[Pose] | None] | None = None) -> list[KittingSlot]:
-    """A slot for every part (returned in the order given), the largest footprints laid out first, each in the
-    free place nearest ``prefer_near_xy`` (usually the jig). ``names`` must be in assembly order: a part is
-    only an obstacle to the picks of parts assembled before it (the others are gone by then), and a board may
-    lie on a board assembled after it (:func:`stack_places`). Each part's ``candidates`` are tried in the
-    order given (rank them for the target: the pick is usually the easier end).
+                 settles: Callable[..., list[Pose] | None] | None = None,
+                 lay_out_first: Sequence[str] = ()) -> list[KittingSlot]:
+    """A slot for every part (returned in the order given), the parts of ``lay_out_first`` first (in that order),
+    then the largest footprints, each in the free place nearest ``prefer_near_xy`` (usually the jig). ``names``
+    must be in assembly order: a part is only an obstacle to the picks of parts assembled before it (the others are
+    gone by then), and a board may lie on a board assembled after it (:func:`stack_places`). Each part's
+    ``candidates`` are tried in the order given (rank them for the target: the pick is usually the easier end).
+    A part of ``lay_out_first`` that finds no place fails the layout at once (a caller that saw it fail before,
+    e.g. with the jig placed otherwise, learns soon whether it fails again).
 
     ``grasp_ok_at_target(part, grasp)`` says whether a grasp (part frame) also works where the part is placed;
     ``reach`` whether the robot's arm reaches it at the pick among the parts present then (and keeps reaching
@@ -603,11 +606,13 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
                            "with a larger kitting area)", TOO_LARGE)
     # largest footprints first (they need the roomy places, and boards are stacked on them), ties in order; a part
     # that finds no place goes first in the next try (the arm at its target may sweep over the places the larger
-    # parts took near the jig; laid out first, it keeps them clear of it), at most LAYOUT_RETRIES times
+    # parts took near the jig; laid out first, it keeps them clear of it), at most LAYOUT_RETRIES times; a part of
+    # lay_out_first that finds none fails the layout at once
     area_of = {name: float(np.prod(np.sort(mesh.extents)[1:])) for name, mesh in zip(names, meshes)}
     by_size = [names[k] for k in sorted(range(len(names)), key=lambda k: (-round(area_of[names[k]], 4), k))]
     mesh_of = dict(zip(names, meshes))
-    first: list[str] = []
+    first: list[str] = list(dict.fromkeys(n for n in lay_out_first if n in mesh_of))
+    given = len(first)
     while True:
         layout.slots, layout.options = [], {}
         failed = None
@@ -625,7 +630,8 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
         message, kind = _why_not(failed, mesh_of[failed], candidates[failed], grasp_ok_at_target, area,
                                  layout.prefer, failed in layout.unrested,
                                  failed in layout.tried and failed not in layout.picked)
-        if kind != NO_PLACE or failed in layout.unrested or failed in first or len(first) >= LAYOUT_RETRIES:
+        if (kind != NO_PLACE or failed in layout.unrested or failed in first
+                or len(first) - given >= LAYOUT_RETRIES):
             raise KittingError(message, kind, failed)
         first.append(failed)
     slots = [dataclasses.replace(slot, grasp=layout.options[slot.part][0][0], reach=layout.options[slot.part][0][1],

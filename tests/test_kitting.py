@@ -117,6 +117,53 @@ def test_a_part_too_low_for_the_fingers_is_named_as_such(diameter_m, pickable):
         plan_kitting(["dowel"], [dowel], {"dowel": grasps}, lambda n, g: True, AREA)
 
 
+@pytest.mark.parametrize("dowel_first", [False, True])
+def test_a_part_laid_out_first_that_finds_no_place_fails_the_layout_at_once(dowel_first):
+    """A dowel too low for the fingers (12 mm across) beside three boards: by size the boards are laid out before
+    it, each grasp checked at its target, and then the dowel fails. Named in ``lay_out_first`` (cell.plan names a
+    part that failed with the jig placed otherwise), the dowel is laid out first and fails before any board is
+    tried; the failure is the same."""
+    from planning.grasp import antipodal_grasps
+
+    dowel = trimesh.creation.cylinder(0.006, 0.06, sections=24)
+    boards = {f"board_{k}": trimesh.creation.box((0.3, 0.2, 0.02)) for k in range(3)}
+    names, meshes = list(boards) + ["dowel"], list(boards.values()) + [dowel]
+    grasps = {n: antipodal_grasps(m, np.random.default_rng(0))[:20] for n, m in zip(names, meshes)}
+    asked = []
+
+    def ok_at_target(name, grasp):
+        asked.append(name)
+        return True
+
+    with pytest.raises(KittingError, match="part 'dowel': at no place in the kitting ring") as caught:
+        plan_kitting(names, meshes, grasps, ok_at_target, AREA, lay_out_first=["dowel"] if dowel_first else [])
+    assert caught.value.part == "dowel"
+    boards_tried = [name for name in asked if name.startswith("board")]
+    assert (not boards_tried) if dowel_first else boards_tried
+
+
+def test_a_part_laid_out_first_takes_the_place_nearest_the_jig():
+    """Four crates alike are laid out in order, the first nearest the jig; with the last named in
+    ``lay_out_first``, the last takes that place."""
+    from planning.grasp import antipodal_grasps
+
+    names = [f"crate_{k}" for k in range(4)]
+    meshes = [trimesh.creation.box((0.2, 0.15, 0.06)) for _ in names]
+    grasps = {n: antipodal_grasps(m, np.random.default_rng(0))[:20] for n, m in zip(names, meshes)}
+    jig = np.array([0.5, 0.0])
+
+    def places(slots):
+        return {s.part: s.footprint_world.mean(axis=0) for s in slots}
+
+    in_order = places(plan_kitting(names, meshes, grasps, lambda n, g: True, AREA, prefer_near_xy=jig))
+    last_first = places(plan_kitting(names, meshes, grasps, lambda n, g: True, AREA, prefer_near_xy=jig,
+                                     lay_out_first=["crate_3"]))
+    gaps = {name: np.linalg.norm(xy - jig) for name, xy in in_order.items()}
+    assert gaps["crate_0"] == pytest.approx(min(gaps.values())) and gaps["crate_3"] > gaps["crate_0"] + 0.05
+    assert np.allclose(last_first["crate_3"], in_order["crate_0"])
+    assert not np.allclose(last_first["crate_0"], in_order["crate_0"])
+
+
 def _plain_pedestal_top(mesh, rest_from_part):
     from planning.kitting import _rest_half, pedestal_for
     from planning.pose import Pose
