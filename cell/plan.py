@@ -488,7 +488,8 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
 
     Where kitting or motion fail with the jig as the scene places it, the jig is turned by 90, 270 and 180
     degrees (an assembly's grasps may only be reachable from one side); where a part's grasps are all beyond the
-    arm's reach at its target, the jig at that turn is first slid :data:`JIG_SLIDE_M` toward the robot.
+    arm's reach at its target, the jig at that turn is first slid :data:`JIG_SLIDE_M` toward the robot. A part
+    that failed kitting at one placement is laid out first at the next (``plan_kitting``'s ``lay_out_first``).
     ``CellPlan.world_from_assembly`` says where it ended up, and a failure's message names every placement tried,
     one line each, the scene's own first. Planning gives up after ``time_budget_s`` (seconds), and the failure
     then names the first placement it left untried. Parts weigh their volume at their density (kg/m3:
