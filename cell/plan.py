@@ -546,7 +546,7 @@ def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed
             why_again = f"{exc.stage} failed with the jig {_placement_words(turn, slide)}: {exc}"
             for name, value in getattr(exc, "seconds", {}).items():
                 spent[name] = spent.get(name, 0.0) + value
-            too_large = exc.stage == "kitting" and "too large for this cell" in str(exc)
+            too_large = exc.kind == TOO_LARGE
             continue
         for name, value in spent.items():
             plan.seconds[name] = plan.seconds.get(name, 0.0) + value
