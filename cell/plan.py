@@ -42,7 +42,6 @@ from planning.kitting import (
     HAND_CLEARANCE_M,
     NO_GRASP_AT_TARGET,
     NO_PLACE,
-    OUT_OF_TIME,
     TOO_LARGE,
     KittingArea,
     KittingError,
@@ -540,9 +539,8 @@ def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed
                                   stage, deadline, payloads, rests, on_note, lay_out_first)
         except PlanningFailed as exc:
             failures.append((turn, slide, exc))
-            if exc.stage == "kitting" and exc.part and exc.kind not in (OUT_OF_TIME, TOO_LARGE) \
-                    and exc.part not in lay_out_first:
-                lay_out_first += (exc.part,)
+            if exc.stage == "kitting" and exc.part and exc.part not in lay_out_first:
+                lay_out_first += (exc.part,)  # (out of time or a ring too small, no placement follows anyway)
             why_again = f"{exc.stage} failed with the jig {_placement_words(turn, slide)}: {exc}"
             for name, value in getattr(exc, "seconds", {}).items():
                 spent[name] = spent.get(name, 0.0) + value
