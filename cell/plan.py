@@ -290,18 +290,33 @@ class _KitReach(Reach):
         flange = world_from_tcp.position - world_from_tcp.rotation[:, 2] * HAND_LENGTH_M
         return float(np.linalg.norm(flange - self.shoulder)) <= PANDA_REACH_M
 
+    def _at_target_poses(self, part: str, grasp: Grasp) -> list[Pose]:
+        """The TCP poses (world frame) of ``part``'s release, pre-place and retreat's end with ``grasp``."""
+        tcp = self.targets[part] @ grasp.part_from_tcp
+        pre = Pose(tcp.position - self.insertion[part] * INSERTION_M, tcp.quat_wxyz)
+        retreat = Pose(tcp.position - tcp.rotation[:, 2] * APPROACH_M, tcp.quat_wxyz)
+        return [tcp, pre, retreat]
+
     def _at_target_world(self, part: str, grasp: Grasp, kit: list[tuple[trimesh.Trimesh, Pose]] = ()) -> list[Pose]:
         """Load the jig as it is when ``part`` arrives (the parts before it, the part itself as :data:`SELF`; and
         the ``kit`` bodies) and open the hand for ``grasp``; returns the TCP poses of the release, the pre-place
         and the retreat's end."""
-        tcp = self.targets[part] @ grasp.part_from_tcp
-        pre = Pose(tcp.position - self.insertion[part] * INSERTION_M, tcp.quat_wxyz)
-        retreat = Pose(tcp.position - tcp.rotation[:, 2] * APPROACH_M, tcp.quat_wxyz)
         world = self._world(list(kit), self.order[:self.order.index(part)])
         world[SELF] = (self._convex_part(self.meshes[part]), self.targets[part].matrix())
         self.checker.set_obstacles(world)
         self.checker.hold(None, opening_m=grasp.opening_m)
-        return [tcp, pre, retreat]
+        return self._at_target_poses(part, grasp)
+
+    def could_reach_target(self, part: str, grasp: Grasp) -> bool:
+        """Whether the arm could reach ``part``'s release, pre-place and retreat's end with ``grasp`` at all: each
+        pose's flange within the arm's reach and a configuration within the joint limits in the Panda's closed form
+        (:meth:`cell.robot.Panda.closed_form_reaches`), collisions, the part's weight and the planner's margin
+        from the limits aside. A necessary condition of :meth:`at_target` finding configurations, answered in
+        milliseconds and with no side effect: no inverse-kinematics query runs, so no cache, release seed or
+        arm state changes, and the queries after it answer as they would without it."""
+        poses = self._at_target_poses(part, grasp)
+        return (all(self._within_reach(pose) for pose in poses)
+                and all(self.panda.closed_form_reaches(pose) for pose in poses))
 
     # release: the arm and the opened fingers clear the neighbours the part touches (the part's own contacts are
     # planned; the hand around it was checked by the grasp planner, the arm's links must clear it); pre-place: the
@@ -603,6 +618,13 @@ class _Kit:
                     f"part {name!r}: no grasp works at its target (none of its {len(hand_check.candidates[name])} "
                     f"grasps keeps the hand clear of the parts placed before it and of the jig's pads along its "
                     f"{INSERTION_M * 100:.0f} cm insertion)", NO_GRASP_AT_TARGET, name))
+        for name in order:  # a part with no grasp the arm could reach at its target at all fails this placement of
+            # the jig before the layout, not after the larger parts have been laid out (tvunit_0406 turned 0 deg:
+            # 34 s): the layout would fail on it at the end, and the jig is slid or turned for it all the same
+            if ranked[name] and not any(kit_reach.could_reach_target(name, grasp) for grasp in ranked[name]):
+                kit_reach.reached_at_target[name] = False
+                raise _KitFailed(self, KittingError(f"part {name!r}: no grasp works at its target",
+                                                    NO_GRASP_AT_TARGET, name))
 
         def ok_at_target(name: str, grasp: Grasp) -> bool:
             return kit_reach.at_target(name, grasp) is not None
