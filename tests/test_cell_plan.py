@@ -2,15 +2,29 @@
 target, with the real Panda model, inverse kinematics and collision checker."""
 
 import numpy as np
+import pytest
 import trimesh
 
 from cell.bullet import BulletClient
-from cell.plan import HAND_CLEARANCE_M, _KitReach, grasps_clear_at_target, jig_placed
+from cell.plan import (
+    HAND_CLEARANCE_M,
+    _Kit,
+    _KitFailed,
+    _KitReach,
+    _pads,
+    _table,
+    grasps_clear_at_target,
+    jig_placed,
+    part_payload,
+)
 from cell.robot import Panda
 from cell.scene import load_scene
+from perception.synth import generate
 from planning.grasp import Grasp, feasible_grasps
 from planning.gripper import clearance_gripper
+from planning.kitting import NO_GRASP_AT_TARGET
 from planning.pose import Pose
+from planning.sequence import GraspChecker, plan_assembly_sequence
 
 BOARD = trimesh.creation.box((0.2, 0.02, 0.1))  # standing on its long edge, metres
 DOWN_TCP = [0.0, 1.0, 0.0, 0.0]  # the TCP's approach axis along world -z
@@ -96,9 +110,40 @@ def test_a_target_beyond_the_arm_is_told_apart_from_one_the_arm_meets():
                           {"far": far, "near": near, "wall": Pose([0.55, 0.0, top_z + 0.3], [1.0, 0.0, 0.0, 0.0])},
                           {"far": BOARD, "near": BOARD, "wall": wall}, ["wall", "far", "near"],
                           {"far": down, "near": down, "wall": down})
+        # the closed form's answer comes first and changes nothing: no query ran, nothing is cached
+        assert not reach.could_reach_target("far", grasp) and reach.could_reach_target("near", grasp)
+        assert not reach.at_target_cache and not reach.release_seeds and not reach.reached_at_target
         assert reach.at_target("far", grasp) is None and reach.beyond_reach("far")
         assert reach.at_target("near", grasp) is None and not reach.beyond_reach("near")
         assert not reach.beyond_reach("wall")  # never asked
+
+
+def test_a_part_beyond_the_arm_at_every_grasp_fails_the_kit_before_its_layout():
+    """The jig slid 70 cm away from the robot: no grasp of the chair's parts can be reached at its target, and the
+    kit fails on the first part of the order at once, told as beyond the arm's reach, before the layout has asked
+    the arm for any configuration (it used to lay out the larger parts first: tvunit_0406 spent 34 s so). At the
+    jig's own placement each part has a grasp the closed form reaches, and the layout runs."""
+    scene = load_scene()
+    chair = generate("chair", "mixed", np.random.default_rng([3, 3]), "small_chair")
+    sequence = plan_assembly_sequence(chair, seed=0)
+    assert sequence.success
+    payloads = {p.name: part_payload(p) for p in chair.parts}
+    hand_check = GraspChecker(chair, 0)
+
+    def kit(placed):
+        targets = {p.name: placed.fixture.world_from_assembly @ p.assembly_from_part for p in chair.parts}
+        with BulletClient() as client:
+            panda = Panda(client, placed.robot.world_from_base)
+            return _Kit(placed, chair, sequence, panda, [_table(placed)] + _pads(placed, chair), targets,
+                        hand_check, 0, float("inf"), payloads=payloads)
+
+    with pytest.raises(_KitFailed) as failed:
+        kit(jig_placed(scene, 0.0, -0.7))
+    first = sequence.order[0]
+    assert failed.value.error.kind == NO_GRASP_AT_TARGET and failed.value.error.part == first
+    assert failed.value.kit.reach.beyond_reach(first)
+    assert not failed.value.kit.reach.at_target_cache  # no configuration was asked for: the layout never began
+    assert {slot.part for slot in kit(scene).slots} == {p.name for p in chair.parts}
 
 
 def test_the_jig_slides_toward_the_robot_and_turns_about_its_own_origin():
