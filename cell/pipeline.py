@@ -272,6 +272,7 @@ class Pipeline:
                 bar.close()
             bars.clear()
             self.console.say("\n".join(f"    {line}" for line in text.splitlines()))
+            self.report.setdefault("planning_notes", []).append({"upside_down": upside_down, "note": text})
             if again:
                 bars.append(self.console.bar(len(build.parts), "part"))
 

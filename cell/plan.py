@@ -751,9 +751,10 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
         convex_static = {o.name: (ConvexPart.from_mesh(o.name, o.mesh), o.world_from_obstacle) for o in static}
         convex_parts = {p.name: ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts}
         # a part whose motions fail with its grasp is tried with its kitting alternatives (each valid at its
-        # pick and target), at most MOTION_RETRIES times in all
+        # pick and target), at most MOTION_RETRIES times in all; the parts before it are kept as planned
         options = {s.part: [(s.grasp, s.reach)] + list(s.alternatives) for s in slots}
         timing_seconds = 0.0
+        resume = None
         for attempt in range(MOTION_RETRIES + 1):
             tasks = []
             for slot in slots:
@@ -765,7 +766,7 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
             world = CellWorld(panda, scene.robot.world_from_base, convex_static, convex_parts,
                               np.random.default_rng([seed, 2, attempt]), motion or MotionSettings(), payloads)
             try:
-                task_plan = plan_tasks(world, tasks, home_q, progress=progress, deadline=deadline)
+                task_plan = plan_tasks(world, tasks, home_q, progress=progress, deadline=deadline, resume=resume)
                 timing_seconds += world.timing_seconds
                 break
             except TaskPlanningError as exc:
@@ -779,8 +780,9 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
                                      "timing": timing_seconds}
                     raise error from exc
                 failed.pop(0)  # the next grasp for this part
+                resume = exc.checkpoint
                 if on_note is not None:
-                    on_note(f"{exc}\nplanning the motions again with another grasp of {exc.part}")
+                    on_note(f"{exc}\nplanning the motions again from {exc.part}, with another grasp of it")
         slots = [dataclasses.replace(s, grasp=options[s.part][0][0], reach=options[s.part][0][1],
                                      alternatives=tuple(options[s.part][1:])) for s in slots]
         seconds["timing"] = timing_seconds

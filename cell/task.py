@@ -101,6 +101,8 @@ class TaskPlanningError(RuntimeError):
     def __init__(self, kind: str, part: str, stage: str, message: str) -> None:
         super().__init__(f"part {part!r}, {stage}: {message}")
         self.kind, self.part, self.stage = kind, part, stage
+        # set by plan_tasks: the program planned before the part it was planning when this was raised
+        self.checkpoint: TaskCheckpoint | None = None
 
 
 @dataclass(frozen=True)
@@ -132,6 +134,21 @@ class PlannedTask:
 class TaskPlan:
     program: Program
     parts: list[PlannedTask] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class TaskCheckpoint:
+    """The program as planned up to ``part``'s task, not including it: where :func:`plan_tasks` picks up for a
+    task list that starts with the same tasks (``parts_before``), e.g. with another grasp of ``part``.
+    ``world_from_parts``: every loose part (world frame: those placed at their targets, the rest at their picks);
+    ``q`` (rad): the arm after the last retreat."""
+
+    part: str
+    parts_before: tuple[str, ...]
+    steps: tuple
+    planned: tuple[PlannedTask, ...]
+    world_from_parts: dict[str, Pose]
+    q: np.ndarray
 
 
 class CellWorld:
@@ -576,25 +593,56 @@ def _kept(path: np.ndarray) -> list[int]:
 
 
 def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
-               progress=None, deadline: float = float("inf")) -> TaskPlan:
+               progress=None, deadline: float = float("inf"), resume: TaskCheckpoint | None = None) -> TaskPlan:
     """The whole program: every part of ``tasks`` picked and placed in order, then home.
 
-    ``world`` must hold every part at its pick pose on entry (``set_part_poses``); ``progress(fraction)`` is
-    called after each part; past ``deadline`` (``time.perf_counter()``) it gives up.
+    ``progress(fraction)`` is called after each part; past ``deadline`` (``time.perf_counter()``) it gives up.
+    A :class:`TaskPlanningError` carries the checkpoint before the part it failed on (``checkpoint``); given as
+    ``resume`` with a task list that starts with the same tasks, planning picks up there (the parts before it are
+    not planned again).
     """
+    checkpoints: list[TaskCheckpoint] = []
+    try:
+        return _plan_tasks(world, tasks, home_q, progress, deadline, resume, checkpoints)
+    except TaskPlanningError as exc:
+        if checkpoints and checkpoints[-1].part == exc.part:
+            exc.checkpoint = checkpoints[-1]
+        raise
+
+
+def _plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray, progress, deadline: float,
+                resume: TaskCheckpoint | None, checkpoints: list[TaskCheckpoint]) -> TaskPlan:
     program = Program(initial_width_m=tasks[0].grasp.opening_at_pick_m if tasks else MAX_OPENING_M)
-    plan = TaskPlan(program)
-    poses = {t.part: t.world_from_pick for t in tasks}
+    if resume is None:
+        first = 0
+        plan = TaskPlan(program)
+        poses = {t.part: t.world_from_pick for t in tasks}
+        q = np.asarray(home_q, dtype=np.float64)
+    else:
+        first = len(resume.parts_before)
+        if tuple(t.part for t in tasks[:first]) != resume.parts_before or tasks[first].part != resume.part:
+            raise ValueError(f"the checkpoint before {resume.part!r} is not one of these tasks")
+        program.steps = list(resume.steps)
+        plan = TaskPlan(program, list(resume.planned))
+        poses = dict(resume.world_from_parts)
+        q = np.array(resume.q, dtype=np.float64)
+        if progress is not None:
+            progress(first / len(tasks))
     world.set_part_poses(poses)
-    q = np.asarray(home_q, dtype=np.float64)
 
     def add_motion(part: str, label: str, path: np.ndarray, valid, held: str | None,
                    limits: JointLimits = PANDA_LIMITS) -> None:
         program.steps.append(MotionStep(f"{part}: {label}", _timed(world, path, valid, part, label, limits), held))
 
     opening = program.initial_width_m
-    for index, task in enumerate(tasks):
+    for index in range(first, len(tasks)):
+        task = tasks[index]
         name, grasp = task.part, task.grasp
+        checkpoints.append(TaskCheckpoint(name, tuple(t.part for t in tasks[:index]), tuple(program.steps),
+                                          tuple(plan.parts), dict(poses), q.copy()))
+        if index:  # the fingers open for this pick where they can, after the last retreat
+            opening = _opening_after_retreat(world, program, q, tasks[index - 1].grasp.opening_m,
+                                             grasp.opening_at_pick_m, "open for the next part")
         # a heavy part is carried slower (the wrist's torque, planning/payload.py)
         carrying = PANDA_LIMITS if task.payload is None else carry_limits(PANDA_LIMITS, task.payload,
                                                                           grasp.part_from_tcp)
@@ -686,17 +734,11 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
                                       "retreat")
         add_motion(name, "retreat", retreat, valid, None)
         q = retreat[-1]
-        opening = tasks[index + 1].grasp.opening_at_pick_m if index + 1 < len(tasks) else MAX_OPENING_M
-        if abs(opening - grasp.opening_m) > 1e-6:
-            world.hold(None, None, max(opening, grasp.opening_m))
-            if world.validity()(q):
-                program.steps.append(GripperStep("open for the next part" if index + 1 < len(tasks) else "open",
-                                                 opening, None))
-            else:  # a finger opening wider would meet a placed part: it opens at the next approach, or at home
-                opening = grasp.opening_m
         plan.parts.append(PlannedTask(name, grasp_q, place_q))
         if progress is not None:
             progress((index + 1) / len(tasks))
+    if tasks:
+        opening = _opening_after_retreat(world, program, q, tasks[-1].grasp.opening_m, MAX_OPENING_M, "open")
     world.hold(None, None, opening)
     park = _park_configuration(np.asarray(home_q, dtype=np.float64), world.validity(transit=True))
     free = _free_space_validity(world, q, park)
@@ -707,6 +749,20 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
         if world.validity()(park):
             program.steps.append(GripperStep("open", MAX_OPENING_M, None))
     return plan
+
+
+def _opening_after_retreat(world: CellWorld, program: Program, q: np.ndarray, released_m: float, wanted_m: float,
+                           label: str) -> float:
+    """The fingers' opening (m) after a retreat that ended at ``q`` with them at ``released_m``: ``wanted_m``
+    (a gripper step appended to ``program``) where the hand opened to it clears every placed part there, else
+    ``released_m`` (a finger would meet a placed part: it opens at the next approach, or at home)."""
+    if abs(wanted_m - released_m) <= 1e-6:
+        return wanted_m
+    world.hold(None, None, max(wanted_m, released_m))
+    if not world.validity()(q):
+        return released_m
+    program.steps.append(GripperStep(label, wanted_m, None))
+    return wanted_m
 
 
 def _insertion(world: CellWorld, place_q: np.ndarray, world_from_tcp_place: Pose, direction: np.ndarray,

@@ -413,6 +413,43 @@ def test_a_hand_that_cannot_open_wider_after_the_retreat_opens_at_the_next_appro
     assert all(world.validity()(config) for config in q)
 
 
+def test_planning_picks_up_at_the_part_that_failed_with_another_grasp(panda):
+    """The second of two blocks is held 1.5 m from its grasp point, beyond the arm's reach: planning fails on it
+    and the failure carries the program up to it. Planned again from there with a grasp that works, the first
+    block's motions are kept as they were (not planned again), the hand opens after their retreat for the new
+    grasp's wider pick, and the program ends home. A checkpoint from other tasks is refused."""
+    down_tcp, up = [0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
+    block = trimesh.creation.box((0.03, 0.01, 0.03))
+    world = CellWorld(panda, Pose.identity(), {}, {n: ConvexPart.from_mesh(n, block) for n in ("first", "second")},
+                      np.random.default_rng(0))
+    narrow = Grasp(Pose([0.0, 0.0, 0.0], down_tcp), width_m=0.01, opening_m=0.02, score=1.0, centroid_score=1.0,
+                   contact_score=1.0)
+    wide = dataclasses.replace(narrow, pick_opening_m=0.07)
+    tasks = [PartTask("first", Pose([0.35, -0.3, 0.115], up), Pose([0.5, 0.0, 0.115], up), narrow, DOWN, (), "pad"),
+             PartTask("second", Pose([0.35, 0.3, 0.115], up), Pose([0.5, -0.2, 0.115], up),
+                      dataclasses.replace(wide, part_from_tcp=Pose([0.0, 0.0, -1.5], down_tcp)), DOWN, (), "pad")]
+    home_q = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
+    with pytest.raises(TaskPlanningError) as failure:
+        plan_tasks(world, tasks, home_q)
+    checkpoint = failure.value.checkpoint
+    assert failure.value.part == "second" and checkpoint.part == "second" and checkpoint.parts_before == ("first",)
+    assert [step.label for step in checkpoint.steps][-1] == "first: retreat"
+    assert set(checkpoint.world_from_parts) == {"first", "second"}
+    np.testing.assert_allclose(checkpoint.world_from_parts["first"].position, [0.5, 0.0, 0.115])
+
+    tasks[1] = dataclasses.replace(tasks[1], grasp=wide)
+    fractions = []
+    steps = plan_tasks(world, tasks, home_q, progress=fractions.append, resume=checkpoint).program.steps
+    assert all(kept is planned for kept, planned in zip(checkpoint.steps, steps, strict=False))
+    labels = [step.label for step in steps]
+    assert labels[len(checkpoint.steps):len(checkpoint.steps) + 2] == ["open for the next part",
+                                                                        "second: move to the pick"]
+    assert steps[len(checkpoint.steps)].width_m == pytest.approx(0.07)
+    assert labels[-2:] == ["open", "return home"] and fractions == [0.5, 1.0]
+    with pytest.raises(ValueError, match="checkpoint before 'second'"):
+        plan_tasks(world, tasks[::-1], home_q, resume=checkpoint)
+
+
 def test_a_retreat_keeps_its_clearance_from_parts_in_the_kit(panda):
     """The open hand retreats from a released plank. A block beside the hand, 2 mm from it where the retreat ends
     (0.5 mm farther than the exact check lets it come), blocks the retreat as a part lying in the kit
