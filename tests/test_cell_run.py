@@ -433,6 +433,31 @@ def test_a_top_slides_down_between_its_sides(tmp_path):
     assert top["position_error_m"] < 0.001 and top["rotation_error_deg"] < 0.5, top
 
 
+def test_a_jig_just_beyond_the_arm_is_slid_toward_it_and_the_report_says_why(small_chair, tmp_path):
+    """The scene puts the jig 35 cm farther from the robot than the default: an arm's target there is beyond
+    reach with every grasp, so the planner slides the jig 6 cm toward the robot and builds the chair there. The
+    report gives the slide and, in ``planning_notes``, why it was needed, as the run printed it."""
+    from cell.scene import DEFAULT_SCENE, scenes_root
+
+    text = (scenes_root() / DEFAULT_SCENE).read_text()
+    assert "world_from_assembly = { position = [0.5, 0.0, 0.12]" in text
+    scene = tmp_path / "far_jig.toml"
+    scene.write_text(text.replace("world_from_assembly = { position = [0.5, 0.0, 0.12]",
+                                  "world_from_assembly = { position = [0.85, 0.0, 0.12]"))
+    out = tmp_path / "out"
+    code = main(["--parts", str(small_chair / "parts"), "--poses", str(small_chair / "assembly.json"),
+                 "--scene", str(scene), "--out", str(out), "--quiet", "--no-animation"])
+    report = json.loads((out / "report.json").read_text())
+    assert code == 0, report["failure"]
+    assert report["jig_turn_deg"] == 0.0 and report["jig_slide_m"] == pytest.approx(0.06)
+    assert report["world_from_assembly"]["position"][0] == pytest.approx(0.79)
+    [note] = report["planning_notes"]
+    assert note["upside_down"] is False
+    assert note["note"].startswith("kitting failed with the jig turned 0 deg: part ")
+    assert note["note"].endswith("each grasp tried there is beyond the arm's reach")
+    assert all(part["within_tolerance"] for part in report["parts"])
+
+
 def test_an_object_that_cannot_be_built_standing_is_built_upside_down(tray, tmp_path):
     """The tray is built upside down, its top first on the jig, and every part ends on its target; the report
     says so and places the target's frame turned over on the jig. With ``[fixture] upside_down = false`` in the
