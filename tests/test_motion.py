@@ -92,17 +92,68 @@ def test_segment_check_decides_the_edges():
 
 def test_a_query_with_no_path_is_searched_again_before_it_fails():
     """A failed search is followed by a fresh one (new random trees) up to ``MotionSettings.searches`` times; the
-    error says how many ran. The query has no path: no edge may cross joint 1 = 0."""
+    error says how many ran and what ended them. The query has no path: no edge may cross joint 1 = 0."""
     start, goal = np.zeros(7), np.zeros(7)
     start[0], goal[0] = -0.5, 0.5
+    checks = []
+
+    def is_valid(q):
+        checks.append("state")
+        return True
 
     def segment_valid(q_from, q_to):
+        checks.append("edge")
         return bool(np.sign(q_from[0]) == np.sign(q_to[0]))
 
-    for searches, words in ((2, "found no path within 0.2 s in each of 2 searches"), (1, "found no path within 0.2 s")):
-        started = time.perf_counter()
+    for searches, words in ((2, "found no path in 300 validity checks (each of 2 searches)"),
+                            (1, "found no path in 300 validity checks")):
+        checks.clear()
         with pytest.raises(MotionPlanningError) as info:
-            plan_joint_path(lambda q: True, start, goal, LOWER, UPPER,
-                            MotionSettings(time_limit_s=0.2, searches=searches), segment_valid=segment_valid)
+            plan_joint_path(is_valid, start, goal, LOWER, UPPER,
+                            MotionSettings(checks_per_search=300, searches=searches), segment_valid=segment_valid)
         assert info.value.kind == "timeout" and str(info.value).endswith(words)
-        assert time.perf_counter() - started >= 0.2 * searches  # each search ran out its time
+        # each search ran out its checks (before them: the start, the goal and the straight start-goal edge)
+        assert 300 * searches <= len(checks) - 3 <= 305 * searches
+    started = time.perf_counter()
+    with pytest.raises(MotionPlanningError, match=r"found no path within 0.2 s \(each of 2 searches\)$"):
+        plan_joint_path(lambda q: True, start, goal, LOWER, UPPER,
+                        MotionSettings(checks_per_search=None, time_limit_s=0.2), segment_valid=segment_valid)
+    assert time.perf_counter() - started >= 0.4  # by the clock alone, each search ran out its time
+
+
+_HARD_QUERY = """
+import sys, time, numpy as np
+from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path
+delay_s, checks, seconds = float(sys.argv[1]), None if sys.argv[2] == "none" else int(sys.argv[2]), float(sys.argv[3])
+start, goal = np.zeros(7), np.zeros(7)
+start[0], goal[0] = -0.5, 0.5
+
+def free(q):  # a block of joint space between start and goal: about 2600 checks to find the way around
+    time.sleep(delay_s)
+    return not (abs(q[0]) < 0.2 and abs(q[1]) < 1.5 and abs(q[2]) < 1.5)
+
+settings = MotionSettings(checks_per_search=checks, time_limit_s=seconds, searches=1, simplify=False)
+try:
+    print(np.round(plan_joint_path(free, start, goal, np.full(7, -2.5), np.full(7, 2.5), settings), 9).tolist())
+except MotionPlanningError as exc:
+    print(exc)
+"""
+
+
+def test_a_search_ends_after_its_checks_however_slow_they_are():
+    """A query that takes about 2600 checks, each 1 ms slower on a busy machine: with a search ended after 5000
+    checks, the busy machine finds the same path as the idle one (OMPL seeded alike). Ended by the clock alone
+    (0.5 s), the idle machine finds it and the busy one runs out of time."""
+    import subprocess
+    import sys
+
+    def run(delay_s: str, checks: str, seconds: str) -> str:
+        return subprocess.run([sys.executable, "-c", _HARD_QUERY, delay_s, checks, seconds], capture_output=True,
+                              text=True, check=True).stdout
+
+    idle, busy = run("0", "5000", "60"), run("0.001", "5000", "60")
+    assert idle.startswith("[[-0.5") and idle == busy
+    idle, busy = run("0", "none", "0.5"), run("0.001", "none", "0.5")
+    assert idle.startswith("[[-0.5") and busy.startswith("RRTConnect found no path within 0.5 s")
+
+
