@@ -337,8 +337,8 @@ class OurPlanner:
     def __init__(self, scene: Scene, lower: np.ndarray, upper: np.ndarray, time_limit_s: float, seed: int) -> None:
         self.checker = RobotCollisionChecker(scene.robot.world_from_base.matrix(), {})
         self.lower, self.upper = lower, upper
-        # one call, ended by the clock, as MPlib's
-        self.settings = MotionSettings(checks_per_search=None, time_limit_s=time_limit_s, seed=seed, searches=1)
+        # one call, ended by the clock too, as MPlib's
+        self.settings = MotionSettings(time_limit_s=time_limit_s, wall_limit_s=time_limit_s, seed=seed, searches=1)
 
     def set_world(self, obstacles, held, opening_m: float) -> None:
         self.checker.set_obstacles(obstacles)

@@ -23,7 +23,6 @@ PLANNERS = ("RRTConnect", "RRT", "RRTstar", "PRM", "KPIECE1", "BKPIECE1", "LBKPI
 # planners that check edges only with the two-state checkMotion (the one a Python motion validator overrides); the
 # KPIECE family also asks for the last valid state of an edge, so it keeps OMPL's discrete validator
 _SEGMENT_VALIDATOR_PLANNERS = frozenset({"RRTConnect", "RRT", "RRTstar", "PRM", "BITstar"})
-CHECKS_PER_SEARCH = 20_000
 _seed_lock = threading.Lock()
 _seeded: int | None = None
 
@@ -39,21 +38,21 @@ class MotionPlanningError(RuntimeError):
 @dataclass(frozen=True)
 class MotionSettings:
     planner: str = "RRTConnect"
-    # a search ends after this many validity checks (of configurations and of edges, the planner's calls of
-    # is_valid and segment_valid), so that where it ends, and what is planned after it, does not depend on how busy
-    # the machine is (searches cut off by the clock made runs side by side plan differently); None: by time alone.
-    # About 5 s of searching on one core of a 2-core Xeon (benchmarks/RESULTS.md)
-    checks_per_search: int | None = CHECKS_PER_SEARCH
-    # ... or after this many seconds, whichever comes first: a bound for a slow machine
-    time_limit_s: float = 20.0
+    # a search ends after this much of its own work: CPU seconds of the thread it runs on, so that a search gets as
+    # far on a busy machine as on an idle one (cut off by the clock, searches on a machine running two plans side
+    # by side failed where the same plan alone found its paths)
+    time_limit_s: float = 5.0
+    # ... or after this many seconds by the clock, whichever comes first (None: no bound): a bound for a machine so
+    # busy that the search's thread seldom runs
+    wall_limit_s: float | None = 20.0
     # fraction of the joint-space diagonal between validity checks along edges (OMPL's resolution) where no
     # segment_valid is given, or for the KPIECE planners; the Panda's diagonal is about 14 rad, so 0.001 checks
     # every 0.014 rad (up to a centimetre at the hand)
     check_resolution: float = 0.001
     simplify: bool = True  # shorten the path (see _simplify)
     seed: int = 0
-    # searches before a query fails, each growing new random trees: one search that runs out of checks through a
-    # narrow passage is no proof that there is no path
+    # searches of time_limit_s each before a query fails, each growing new random trees: one search that runs out
+    # of time through a narrow passage is no proof that there is no path
     searches: int = 2
 
 
@@ -115,19 +114,20 @@ def _simplify(og, information, path) -> None:
 
 
 class _SearchBudget:
-    """One search's validity checks (``checks``, counted by the caller) and time: ``spent()`` once it has made
-    ``limit`` checks (None: no limit) or run ``seconds``; ``out_of_time`` says the clock stopped it."""
+    """One search's time, started by ``start()``: ``spent()`` once its thread has worked ``cpu_s`` seconds (the
+    search runs on the thread that calls OMPL's solve, its validity checks too) or ``wall_s`` seconds have passed
+    by the clock (None: never); ``by_clock`` says the clock ended it."""
 
-    def __init__(self, limit: int | None, seconds: float) -> None:
-        self.limit, self.seconds = limit, seconds
+    def __init__(self, cpu_s: float, wall_s: float | None) -> None:
+        self.cpu_s, self.wall_s = cpu_s, wall_s
         self.start()
 
     def start(self) -> None:
-        self.checks, self.started, self.out_of_time = 0, time.perf_counter(), False
+        self.cpu_started, self.wall_started, self.by_clock = time.thread_time(), time.perf_counter(), False
 
     def spent(self) -> bool:
-        self.out_of_time = self.out_of_time or time.perf_counter() - self.started > self.seconds
-        return self.out_of_time or (self.limit is not None and self.checks >= self.limit)
+        self.by_clock = self.wall_s is not None and time.perf_counter() - self.wall_started > self.wall_s
+        return self.by_clock or time.thread_time() - self.cpu_started > self.cpu_s
 
 
 def plan_joint_path(is_valid: Callable[[np.ndarray], bool], start_q: np.ndarray, goal_q: np.ndarray,
@@ -163,28 +163,19 @@ def plan_joint_path(is_valid: Callable[[np.ndarray], bool], start_q: np.ndarray,
         bounds.setHigh(i, float(upper[i]))
     space.setBounds(bounds)
     setup = og.SimpleSetup(space)
-    budget = _SearchBudget(settings.checks_per_search, settings.time_limit_s)
-
-    def state_valid(state) -> bool:
-        budget.checks += 1
-        return bool(is_valid(np.array([state[i] for i in range(dof)])))
-
-    def edge_valid(q_from: np.ndarray, q_to: np.ndarray) -> bool:
-        budget.checks += 1
-        return segment_valid(q_from, q_to)
-
-    setup.setStateValidityChecker(state_valid)
+    setup.setStateValidityChecker(lambda state: bool(is_valid(np.array([state[i] for i in range(dof)]))))
     information = setup.getSpaceInformation()
     information.setStateValidityCheckingResolution(settings.check_resolution)
     validator = None  # this name keeps the Python validator alive while OMPL uses it
     if segment_valid is not None and settings.planner in _SEGMENT_VALIDATOR_PLANNERS:
-        validator = _segment_validator(ob, information, edge_valid, dof)
+        validator = _segment_validator(ob, information, segment_valid, dof)
         information.setMotionValidator(validator)
     start, goal = space.allocState(), space.allocState()
     for i in range(dof):
         start[i], goal[i] = float(start_q[i]), float(goal_q[i])
     setup.setStartAndGoalStates(start, goal)
     setup.setPlanner(getattr(og, settings.planner)(information))
+    budget = _SearchBudget(settings.time_limit_s, settings.wall_limit_s)
     for _ in range(max(1, settings.searches)):
         budget.start()
         solved = setup.solve(ob.PlannerTerminationCondition(budget.spent))
@@ -192,9 +183,9 @@ def plan_joint_path(is_valid: Callable[[np.ndarray], bool], start_q: np.ndarray,
             break
         setup.clear()  # the next search grows its trees afresh
     else:
-        within = (f"within {settings.time_limit_s:.1f} s" if budget.out_of_time or budget.limit is None
-                  else f"in {budget.limit} validity checks")
-        searches = f" (each of {settings.searches} searches)" if settings.searches > 1 else ""
+        within = (f"within {settings.wall_limit_s:.1f} s by the clock (the machine is busy)" if budget.by_clock
+                  else f"within {settings.time_limit_s:.1f} s of searching")
+        searches = f", in each of {settings.searches} searches" if settings.searches > 1 else ""
         raise MotionPlanningError("timeout", f"{settings.planner} found no path {within}{searches}")
     path = setup.getSolutionPath()
     if settings.simplify:
