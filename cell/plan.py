@@ -506,15 +506,16 @@ def plan_cell(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed: 
     arm's reach at its target, the jig at that turn is first slid :data:`JIG_SLIDE_M` toward the robot. A part
     that failed kitting at one placement is laid out first at the next (``plan_kitting``'s ``lay_out_first``).
     ``CellPlan.world_from_assembly`` says where it ended up, and a failure's message names every placement tried,
-    one line each, the scene's own first. Planning gives up after ``time_budget_s`` (seconds), and the failure
-    then names the first placement it left untried. Parts weigh their volume at their density (kg/m3:
-    ``part_density_kg_m3[name]`` where given, else ``density_kg_m3``) in the arm's torque checks. The kit's rest
-    checks take every part at ``density_kg_m3``: a part alone on its pedestal rests or tips the same at any
-    density (its weight and its friction scale together); only boards stacked in the kit press on each other by
-    their own weights."""
+    one line each, the scene's own first. Planning gives up after ``time_budget_s`` seconds of its own work (the
+    CPU time of the calling thread, on which every check and search runs: a busy machine takes longer by the clock
+    but plans the same), and the failure then names the first placement it left untried. Parts weigh their volume
+    at their density (kg/m3: ``part_density_kg_m3[name]`` where given, else ``density_kg_m3``) in the arm's torque
+    checks. The kit's rest checks take every part at ``density_kg_m3``: a part alone on its pedestal rests or tips
+    the same at any density (its weight and its friction scale together); only boards stacked in the kit press on
+    each other by their own weights."""
     if not sequence.success:
         raise PlanningFailed("sequence", f"no assembly sequence: {sequence.reason}")
-    deadline = time.perf_counter() + time_budget_s
+    deadline = time.thread_time() + time_budget_s
     payloads = {p.name: part_payload(p, density_kg_m3, part_density_kg_m3) for p in assembly.parts}
     # shared by the turns: a part rests on a pedestal the same anywhere
     with PhysicsRestCheck(SimSettings(density_kg_m3=density_kg_m3)) as rests:
@@ -543,7 +544,7 @@ def _plan_turns(scene: Scene, assembly: Assembly, sequence: SequenceResult, seed
             continue  # slid only where the arm did not reach a part's target at this turn
         if too_large:
             break
-        if failures and time.perf_counter() > deadline:
+        if failures and time.thread_time() > deadline:
             out_of_time = (turn, slide)
             break
         if why_again is not None and on_note is not None:
@@ -729,7 +730,7 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
                     exc = KittingError(f"{exc}: each grasp tried there is beyond the arm's reach", exc.kind,
                                        exc.part)
                 context = f"with the order planned again {reorder} time(s) for the arm" if reorder else ""
-                if exc.kind != NO_GRASP_AT_TARGET or reorder == REORDERS or time.perf_counter() > deadline:
+                if exc.kind != NO_GRASP_AT_TARGET or reorder == REORDERS or time.thread_time() > deadline:
                     raise _kitting_failed(exc, started, context, beyond) from exc
                 blockers = failed.kit.blockers(exc.part)
                 if not blockers:
@@ -774,7 +775,7 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
                 failed = options.get(exc.part, [])
                 out_of_time = exc.kind == "timeout" and exc.stage == "planning"  # the budget, not one search
                 if (attempt == MOTION_RETRIES or len(failed) < 2 or out_of_time
-                        or time.perf_counter() > deadline):
+                        or time.thread_time() > deadline):
                     error = PlanningFailed("motion", str(exc), exc.part)
                     error.seconds = {**seconds, "motion": time.perf_counter() - started - timing_seconds,
                                      "timing": timing_seconds}

@@ -596,7 +596,7 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
                progress=None, deadline: float = float("inf"), resume: TaskCheckpoint | None = None) -> TaskPlan:
     """The whole program: every part of ``tasks`` picked and placed in order, then home.
 
-    ``progress(fraction)`` is called after each part; past ``deadline`` (``time.perf_counter()``) it gives up.
+    ``progress(fraction)`` is called after each part; past ``deadline`` (``time.thread_time()``) it gives up.
     A :class:`TaskPlanningError` carries the checkpoint before the part it failed on (``checkpoint``); given as
     ``resume`` with a task list that starts with the same tasks, planning picks up there (the parts before it are
     not planned again).
@@ -646,7 +646,7 @@ def _plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray, pro
         # a heavy part is carried slower (the wrist's torque, planning/payload.py)
         carrying = PANDA_LIMITS if task.payload is None else carry_limits(PANDA_LIMITS, task.payload,
                                                                           grasp.part_from_tcp)
-        if time.perf_counter() > deadline:
+        if time.thread_time() > deadline:
             raise TaskPlanningError("timeout", name, "planning", "the planning time budget ran out")
         # --- pick ------------------------------------------------------------------------------------------
         # the approach is checked with the hand open for the pick; where it could not open that wide after the

@@ -575,7 +575,7 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
 
     ``grasp_ok_at_target(part, grasp)`` says whether a grasp (part frame) also works where the part is placed;
     ``reach`` whether the robot's arm reaches it at the pick among the parts present then (and keeps reaching
-    the earlier parts once the new one lies next to them). Past ``deadline`` (``time.perf_counter()``) it
+    the earlier parts once the new one lies next to them). Past ``deadline`` (``time.thread_time()``) it
     gives up. ``target_rotations`` (part -> world_from_part rotation at the target): each part is first tried
     lying as it sits in the assembly (where that is stable), so that the grasps that work at the target from
     above also work at the pick; then in its stable poses, most probable first.
@@ -617,7 +617,7 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
         layout.slots, layout.options = [], {}
         failed = None
         for name in first + [n for n in by_size if n not in first]:
-            if time.perf_counter() > deadline:
+            if time.thread_time() > deadline:
                 raise KittingError(f"part {name!r}: the planning time budget ran out while laying out the kit",
                                    OUT_OF_TIME, name)
             chosen = layout.place(name, candidates[name], grasp_ok_at_target)
