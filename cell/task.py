@@ -392,22 +392,37 @@ class CellWorld:
                                        hand_ignore=hand_ignore)
 
     def transit(self, start_q: np.ndarray, goal_q: np.ndarray, valid, part: str, stage: str) -> np.ndarray:
-        """An OMPL path, re-checked every :data:`DENSE_CHECK_RAD` (OMPL checks its edges at its resolution and
-        can step over a thin overlap); a path that fails is planned again with a finer resolution."""
+        """An OMPL path, re-checked every :data:`DENSE_CHECK_RAD` (OMPL checks its edges at its resolution, or
+        ``valid.segment`` at its spacing, and either can step over a thin overlap); a path that fails is planned
+        again with a finer resolution, and with the re-check among the checks of every edge (else the straight
+        line from start to goal, which the edge check passed, would be planned again: table_klubbo_0743's return
+        home passed a finger 2 mm into a part's clearance between two of ``segment``'s samples, three times)."""
         settings = self.motion
+        segment = getattr(valid, "segment", None)
         # the search keeps off the joint limits (its own ends may lie closer, where inverse kinematics put them)
         lower = np.minimum(self.panda.lower_limits + JOINT_LIMIT_MARGIN_RAD, np.minimum(start_q, goal_q))
         upper = np.maximum(self.panda.upper_limits - JOINT_LIMIT_MARGIN_RAD, np.maximum(start_q, goal_q))
         for _ in range(3):
             try:
-                path = plan_joint_path(valid, start_q, goal_q, lower, upper,
-                                       settings, segment_valid=getattr(valid, "segment", None))
+                path = plan_joint_path(valid, start_q, goal_q, lower, upper, settings, segment_valid=segment)
             except MotionPlanningError as exc:
                 raise TaskPlanningError(exc.kind, part, stage, str(exc)) from exc
             if _dense_path_valid(valid, path, DENSE_CHECK_RAD):
                 return path
             settings = replace(settings, check_resolution=settings.check_resolution / 4)
+            if segment is not None:
+                segment = _with_dense_check(valid)
         raise TaskPlanningError("timeout", part, stage, "every planned path grazes an obstacle between OMPL's checks")
+
+
+def _with_dense_check(valid):
+    """``valid.segment``, each edge also re-checked every :data:`DENSE_CHECK_RAD` as a planned path is."""
+
+    def segment(q_from: np.ndarray, q_to: np.ndarray) -> bool:
+        return bool(valid.segment(q_from, q_to)) and _dense_path_valid(valid, np.stack([q_from, q_to]),
+                                                                      DENSE_CHECK_RAD)
+
+    return segment
 
 
 def _dense_path_valid(valid, path: np.ndarray, step_rad: float) -> bool:

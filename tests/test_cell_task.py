@@ -11,6 +11,7 @@ from cell.bullet import BulletClient
 from cell.robot import Panda
 from cell.task import (
     CARRY_CLEARANCE_M,
+    DENSE_CHECK_RAD,
     INSERTION_M,
     INSERTION_SPEED_M_S,
     JOINT_LIMIT_MARGIN_RAD,
@@ -23,6 +24,7 @@ from cell.task import (
     PartTask,
     TaskPlanningError,
     _among_neighbours_validity,
+    _dense_path_valid,
     _insertion,
     _insertion_limits,
     _lead_in,
@@ -411,6 +413,29 @@ def test_a_hand_that_cannot_open_wider_after_the_retreat_opens_at_the_next_appro
     world.set_part_poses({"finned": tasks[0].world_from_target, "next": tasks[1].world_from_pick})
     world.hold(None, None, narrow.opening_m)
     assert all(world.validity()(config) for config in q)
+
+
+def test_a_path_that_grazes_between_the_edge_checks_is_planned_around_it(panda):
+    """An edge check that looks only at each edge's end steps over a slab of joint space 0.005 rad thick, which the
+    re-check of a planned path (every DENSE_CHECK_RAD) lands in. The straight line from start to goal passes the
+    edge check and fails the re-check; planned again, every edge is re-checked as the path will be, and the path
+    goes around the slab (the straight line, planned three times, used to fail the move)."""
+
+    class SteppingOver:
+        def __call__(self, q) -> bool:
+            return not (0.1 <= q[0] <= 0.105 and -0.6 < q[1] < 0.0)
+
+        def segment(self, q_from, q_to) -> bool:
+            return self(q_to)
+
+    world = world_with(panda, {})
+    start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
+    goal = start + np.array([0.4, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    assert SteppingOver().segment(start, goal) and not _dense_path_valid(SteppingOver(), np.stack([start, goal]),
+                                                                        DENSE_CHECK_RAD)
+    path = world.transit(start, goal, SteppingOver(), "bar", "test")
+    assert len(path) > 2 and _dense_path_valid(SteppingOver(), path, DENSE_CHECK_RAD)
+    np.testing.assert_allclose(path[[0, -1]], [start, goal])
 
 
 def test_planning_picks_up_at_the_part_that_failed_with_another_grasp(panda):
