@@ -181,7 +181,10 @@ def plan_joint_path(is_valid: Callable[[np.ndarray], bool], start_q: np.ndarray,
         solved = setup.solve(ob.PlannerTerminationCondition(budget.spent))
         if solved and "Exact" in str(solved):
             break
-        setup.clear()  # the next search grows its trees afresh
+        # the next search grows its trees afresh, with a new planner: its random numbers come from a seed of their
+        # own, not from where this search's stream stopped (which depends on how far it got in its time)
+        setup.clear()
+        setup.setPlanner(getattr(og, settings.planner)(information))
     else:
         within = (f"within {settings.wall_limit_s:.1f} s by the clock (the machine is busy)" if budget.by_clock
                   else f"within {settings.time_limit_s:.1f} s of searching")
