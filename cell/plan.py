@@ -18,11 +18,12 @@ import trimesh
 
 from cell.bullet import BulletClient
 from cell.resting import PhysicsRestCheck
-from cell.robot import IKError, IKSettings, Panda, pose_rng
+from cell.robot import CARTESIAN_STEP_M, IKError, IKSettings, Panda, StraightLineError, pose_rng
 from cell.scene import Scene
 from cell.simulate import SimSettings
 from cell.task import (
     INSERTION_M,
+    INSERTION_STEP_M,
     JOINT_LIMIT_MARGIN_RAD,
     LIFT_M,
     RETREAT_KIT_CLEARANCE_M,
@@ -190,13 +191,16 @@ def _kitting_area(scene: Scene, assembly: Assembly) -> KittingArea:
 
 
 class _KitReach(Reach):
-    """Arm configurations (IK) for each part's grasp at the pick (grasp, pre-grasp) and at the target (release,
-    pre-place, end of the retreat), clear of the table, of the parts on the jig at that time and of the parts and
-    pedestals laid out in the kitting area so far. Kitting keeps later parts clear of all of them."""
+    """Arm configurations (IK) for each part's grasp at the pick (grasp, pre-grasp, lifted) and at the target
+    (release, pre-place, end of the retreat), clear of the table, of the jig's ``pads``, of the parts on the jig at
+    that time and of the parts and pedestals laid out in the kitting area so far, with inverse kinematics all along
+    the straight TCP lines the task planner moves on between them. Kitting keeps later parts clear of all of
+    them."""
 
     def __init__(self, panda: Panda, scene: Scene, seed: int, home_q: np.ndarray,
                  targets: dict[str, Pose], meshes: dict[str, trimesh.Trimesh], order: list[str],
-                 insertion: dict[str, np.ndarray], payloads: dict[str, MassProperties] | None = None) -> None:
+                 insertion: dict[str, np.ndarray], payloads: dict[str, MassProperties] | None = None,
+                 pads: list[StaticObstacle] = ()) -> None:
         # every query draws its random starts from the seed and its own first pose (cell.robot.pose_rng), never
         # from a generator shared with the queries before it
         self.panda, self.seed, self.home_q = panda, seed, home_q
@@ -210,7 +214,9 @@ class _KitReach(Reach):
         self._part_meshes = {id(mesh) for mesh in meshes.values()}
         table = _table(scene)
         self._convex: dict[int, tuple[trimesh.Trimesh, ConvexPart]] = {}  # id(mesh) -> (mesh, its convex pieces)
-        self.table = {"table": (self._convex_part(table.mesh), table.world_from_obstacle.matrix())}
+        # the fixed obstacles: the table and the jig's pads (an arm link that met a pad was refused only by the task
+        # planner, and the jig's whole placement with it: table_16's leg_rear_left at its pick, link 6)
+        self.table = {o.name: (self._convex_part(o.mesh), o.world_from_obstacle.matrix()) for o in [table, *pads]}
         self.settings = IKSettings(restarts=4)
         self.shoulder = scene.robot.world_from_base.apply(np.array([[0.0, 0.0, SHOULDER_HEIGHT_M]]))[0]
         self.at_target_cache: dict[tuple, tuple | None] = {}  # (part, grasp, opening, kit) -> configurations
@@ -241,15 +247,17 @@ class _KitReach(Reach):
                checks: list[tuple[frozenset[str], frozenset[str]]] | None,
                load: JointTorques | None = None, held: tuple[bool, ...] = (), elsewhere: bool = False,
                first_ik: IKSettings | None = None, segments: tuple[tuple[int, int, int], ...] = (),
-               accept=None):
+               lines: tuple[tuple[int, float], ...] = (), accept=None):
         """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its (ignore, hand_ignore)
         sets (see :meth:`RobotCollisionChecker.first_invalid`; no collision check when ``checks`` is None), the
         joint-space ``segments`` (from, to, index of the checks) between them valid too, and, where ``held``,
         holding the ``load``; or None. The first attempt starts from ``seed``; the others from where
         the last one left the arm, or, ``elsewhere``, from random configurations (the arm is redundant: another
         elbow may clear what the first one meets). The first pose's inverse kinematics uses ``first_ik`` (default:
-        the planner's settings, few restarts), the others start from the pose before. ``accept(configurations)``,
-        where given, must hold too."""
+        the planner's settings, few restarts), the others start from the pose before. Each of ``lines`` (index,
+        step in m) is the straight TCP line from the first pose to that pose, which inverse kinematics must follow
+        from the first configuration (:meth:`cell.robot.Panda.tcp_line`) as the task planner's straight moves do.
+        ``accept(configurations)``, where given, must hold too."""
         self.chain_unreached = True  # no attempt found inverse kinematics for every pose
         if not all(self._within_reach(pose) for pose in poses):
             return None
@@ -276,6 +284,7 @@ class _KitReach(Reach):
                 and all(self.checker.segment_valid(configurations[a], configurations[b], ignore=checks[k][0],
                                                    hand_ignore=checks[k][1], max_step_m=KIT_SEGMENT_STEP_M)
                         for a, b, k in segments)
+                and all(self._line_followed(configurations[0], poses[0], poses[k], step_m) for k, step_m in lines)
                 and (accept is None or accept(configurations)))
             if load is not None and not all(load.within(q[None])[0] for q, h in zip(configurations, held) if h):
                 self.too_heavy += int(free)  # it would have worked, but for the part's weight
@@ -283,6 +292,18 @@ class _KitReach(Reach):
             if free:
                 return configurations
         return None
+
+    def _line_followed(self, q_start: np.ndarray, world_from_tcp_start: Pose, world_from_tcp_end: Pose,
+                       step_m: float) -> bool:
+        """Whether inverse kinematics follows the straight TCP line from ``q_start`` to ``world_from_tcp_end`` with
+        no jump between branches (chair_16's leg_front was kitted with a pick whose approach needed one, and the
+        task planner refused the jig's placement for it, at two turns)."""
+        offset = np.asarray(world_from_tcp_end.position) - np.asarray(world_from_tcp_start.position)
+        try:
+            self.panda.tcp_line(q_start, world_from_tcp_start, offset, self.seed, step_m)
+        except StraightLineError:
+            return False
+        return True
 
     def _within_reach(self, world_from_tcp: Pose) -> bool:
         """A quick necessary condition before inverse kinematics: the flange (the hand's length back from the
@@ -331,6 +352,10 @@ class _KitReach(Reach):
     # (cabinet_1's bottom: link 7 met drawer_1_side_right on the approach to its pick)
     _TARGET_SEGMENTS = ((1, 0, 1), (0, 2, 0))
     _PICK_SEGMENTS = ((1, 0, 0), (0, 2, 2))
+    # the straight TCP lines the task planner solves from the release (the insertion backwards, the retreat) and
+    # from the grasp (the approach backwards, the lift): (index of the line's other end, inverse kinematics step)
+    _TARGET_LINES = ((1, INSERTION_STEP_M), (2, CARTESIAN_STEP_M))
+    _PICK_LINES = ((1, CARTESIAN_STEP_M), (2, CARTESIAN_STEP_M))
     # the same (from, to) pairs at the pick and at the target: still_clear checks either kind of configurations
     _STRAIGHT_LINES = tuple(segment[:2] for segment in _TARGET_SEGMENTS)
     assert _STRAIGHT_LINES == tuple(segment[:2] for segment in _PICK_SEGMENTS)
@@ -348,19 +373,19 @@ class _KitReach(Reach):
             retreat_clear = (None if not kit else
                              lambda configurations: self._retreat_clear(configurations, grasp.opening_m, kit))
             found = self._chain(poses, self.home_q, checks, load, (True, True, False), elsewhere=bool(kit),
-                                segments=self._TARGET_SEGMENTS, accept=retreat_clear)
+                                segments=self._TARGET_SEGMENTS, lines=self._TARGET_LINES, accept=retreat_clear)
             reached = not self.chain_unreached
             if found is None and not kit:  # harder: other elbows, and more starts for the release (the first
                 # attempts start at home and near each other)
                 start = pose_rng(poses[0], self.seed + 1).uniform(self.panda.lower_limits, self.panda.upper_limits)
                 found = self._chain(poses, start, checks, load, (True, True, False), elsewhere=True,
-                                    first_ik=IKSettings(), segments=self._TARGET_SEGMENTS)
+                                    first_ik=IKSettings(), segments=self._TARGET_SEGMENTS, lines=self._TARGET_LINES)
                 reached = reached or not self.chain_unreached
                 # at the edge of the reach (cabinet_13's side panel), random starts rarely converge: from the
                 # releases found for other grasps and parts, nearby
                 for seed in (self.release_seeds[::-1] if found is None and self.chain_unreached else []):
                     found = self._chain(poses, seed, checks, load, (True, True, False), first_ik=IKSettings(),
-                                        segments=self._TARGET_SEGMENTS)
+                                        segments=self._TARGET_SEGMENTS, lines=self._TARGET_LINES)
                     reached = reached or not self.chain_unreached
                     if found is not None or not self.chain_unreached:
                         break
@@ -427,7 +452,8 @@ class _KitReach(Reach):
         # pre-grasp: clear of the part; lifted: the part is in the hand
         none, hand_only = (frozenset(), frozenset()), (frozenset(), frozenset({SELF}))
         found = self._chain([tcp, pre, lifted], self.home_q, [hand_only, none, (frozenset({SELF}), frozenset())],
-                            self._load(part, grasp), (True, False, True), segments=self._PICK_SEGMENTS)
+                            self._load(part, grasp), (True, False, True), segments=self._PICK_SEGMENTS,
+                            lines=self._PICK_LINES)
         return None if found is None else (tuple(found), target, max(grasp.opening_m, grasp.opening_at_pick_m))
 
     def _load(self, part: str, grasp: Grasp) -> JointTorques | None:
@@ -605,7 +631,8 @@ class _Kit:
             self.touches[name] = tuple(touching + ([pads_under[name]] if name in pads_under else []))
         home_q = np.array(scene.robot.home_q)
         kit_reach = _KitReach(panda, scene, seed, home_q, targets,
-                              {p.name: p.mesh for p in assembly.parts}, order, self.insertion, payloads)
+                              {p.name: p.mesh for p in assembly.parts}, order, self.insertion, payloads,
+                              [o for o in static if o.name.startswith("pad ")])
         ranked: dict[str, list[Grasp]] = {}
         bounds = {p.name: world_bounds(p.mesh, targets[p.name]) for p in assembly.parts}
         self.near: dict[str, list[str]] = {}

@@ -21,6 +21,8 @@ HAND_LINK = "panda_hand"
 VELOCITY_LIMITS = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
 ACCELERATION_LIMITS = np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])
 JERK_LIMITS = np.array([7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0])
+CARTESIAN_STEP_M = 0.02  # inverse kinematics every this much along straight TCP lines
+MAX_JOINT_STEP_RAD = 0.35  # larger jumps between neighbouring straight-line solutions mean a branch switch
 
 
 def pose_rng(world_from_tcp: Pose, seed: int = 0) -> np.random.Generator:
@@ -36,6 +38,16 @@ def pose_rng(world_from_tcp: Pose, seed: int = 0) -> np.random.Generator:
 
 class IKError(RuntimeError):
     """No inverse-kinematics solution within tolerance and joint limits."""
+
+
+class StraightLineError(IKError):
+    """A straight TCP line that inverse kinematics cannot follow: it leaves the reachable space, or needs a jump
+    between IK branches. ``path`` (K, 7): the configurations solved along it before the failure, the first one
+    included."""
+
+    def __init__(self, message: str, path: np.ndarray) -> None:
+        super().__init__(message)
+        self.path = path
 
 
 @dataclass(frozen=True)
@@ -192,6 +204,28 @@ class Panda:
                 return q
         raise IKError(f"no inverse kinematics for the TCP at {world_from_tcp} within limits "
                       f"({settings.restarts} starts; closest {best_error * 1000:.1f} mm)")
+
+    def tcp_line(self, q_start: np.ndarray, world_from_tcp_start: Pose, offset_world: np.ndarray, seed: int,
+                 step_m: float = CARTESIAN_STEP_M) -> np.ndarray:
+        """Joint waypoints (K, 7) from ``q_start`` (placing the TCP at ``world_from_tcp_start``) out to the TCP moved
+        by ``offset_world`` (world frame, m), keeping its orientation: inverse kinematics every ``step_m`` (m), each
+        started from the point before, no joint moving more than :data:`MAX_JOINT_STEP_RAD` between neighbours.
+        Collisions are not checked. Raises :class:`StraightLineError`. The task planner's straight moves follow
+        these waypoints, and kitting asks for them before it keeps a grasp, so both get the same answer."""
+        distance = float(np.linalg.norm(offset_world))
+        steps = max(1, int(np.ceil(distance / step_m)))
+        settings = IKSettings(restarts=1, refinements=24, iterations=200)
+        path = [np.asarray(q_start, dtype=np.float64)]
+        for k in range(1, steps + 1):
+            target = Pose(world_from_tcp_start.position + offset_world * (k / steps), world_from_tcp_start.quat_wxyz)
+            try:
+                q = self.inverse_tcp(target, pose_rng(target, seed), seed_q=path[-1], settings=settings)
+            except IKError as exc:
+                raise StraightLineError(f"straight line leaves the reachable space: {exc}", np.array(path)) from exc
+            if np.max(np.abs(q - path[-1])) > MAX_JOINT_STEP_RAD:
+                raise StraightLineError("straight line needs a jump between IK branches", np.array(path))
+            path.append(q)
+        return np.array(path)
 
     def closed_form_reaches(self, world_from_tcp: Pose, samples: int = IKSettings.closed_form_samples) -> bool:
         """Whether the Panda's closed form finds a configuration within the joint limits placing the TCP at

@@ -39,7 +39,17 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from cell.program import GripperStep, MotionStep, Program
-from cell.robot import ACCELERATION_LIMITS, JERK_LIMITS, VELOCITY_LIMITS, IKError, IKSettings, Panda, pose_rng
+from cell.robot import (
+    ACCELERATION_LIMITS,
+    CARTESIAN_STEP_M,
+    JERK_LIMITS,
+    VELOCITY_LIMITS,
+    IKError,
+    IKSettings,
+    Panda,
+    StraightLineError,
+    pose_rng,
+)
 from planning.collision import ConvexPart, shrunk, signed_distance
 from planning.grasp import APPROACH_M, Grasp
 from planning.gripper import MAX_OPENING_M
@@ -58,12 +68,10 @@ from planning.timing import MAX_DEVIATION_RAD, JointLimits, time_path
 LIFT_M = 0.10  # straight lift after grasping, world +z
 INSERTION_M = 0.08  # straight insertion along the insertion direction into the target
 LEAD_IN_STEPS_M = (0.04, 0.08, 0.16, 0.24)  # farther back it may start, where its pre-place lies between neighbours
-CARTESIAN_STEP_M = 0.02  # inverse kinematics every this much along straight segments
 # and along the insertion, whose joint path between IK points sags off the straight line by the square of their
 # spacing: at 2 cm the TCP strayed 0.3 mm, more than a part fitted between two neighbours has to spare (a quarter
 # of a millimetre each side in the simulator), and a drawer's back was pushed into a side at 430 N
 INSERTION_STEP_M = 0.005
-MAX_JOINT_STEP_RAD = 0.35  # larger jumps between neighbouring straight-line solutions mean a branch switch
 HELD_MARGIN_M = 0.002  # the held part is checked pulled in by this much, so it may slide along faces it touches
 SQUEEZE_M = 0.004  # the closing command asks for this much less than the part's width (force closure)
 DENSE_CHECK_RAD = 0.004  # joint step of the re-check of planned paths
@@ -273,29 +281,25 @@ class CellWorld:
     def straight_line(self, q_contact: np.ndarray, world_from_tcp_contact: Pose, offset_world: np.ndarray,
                       valid, part: str, stage: str, step_m: float = CARTESIAN_STEP_M) -> np.ndarray:
         """Joint waypoints (K, 7) from the contact configuration out to the TCP moved by ``offset_world`` (m),
-        keeping the orientation: IK every ``step_m`` (m), each seeded from the previous point."""
+        keeping the orientation (:meth:`cell.robot.Panda.tcp_line`), each segment between them ``valid``. A
+        collision before the point where the line fails inverse kinematics is the one reported."""
         distance = float(np.linalg.norm(offset_world))
         steps = max(1, int(np.ceil(distance / step_m)))
-        settings = IKSettings(restarts=1, refinements=24, iterations=200)
-        path = [np.asarray(q_contact, dtype=np.float64)]
-        for k in range(1, steps + 1):
-            target = Pose(world_from_tcp_contact.position + offset_world * (k / steps),
-                          world_from_tcp_contact.quat_wxyz)
-            try:
-                q = self.panda.inverse_tcp(target, pose_rng(target, self.ik_seed), seed_q=path[-1], settings=settings)
-            except IKError as exc:
-                raise TaskPlanningError("no_ik", part, stage,
-                                        f"straight line leaves the reachable space: {exc}") from exc
-            if np.max(np.abs(q - path[-1])) > MAX_JOINT_STEP_RAD:
-                raise TaskPlanningError("no_ik", part, stage, "straight line needs a jump between IK branches")
-            blocked = first_invalid_on_line(valid, path[-1], q)
+        try:
+            path, failure = self.panda.tcp_line(q_contact, world_from_tcp_contact, offset_world, self.ik_seed,
+                                                step_m), None
+        except StraightLineError as exc:
+            path, failure = exc.path, exc
+        for k in range(1, len(path)):
+            blocked = first_invalid_on_line(valid, path[k - 1], path[k])
             if blocked is not None:
                 raise TaskPlanningError("straight_line_blocked", part, stage,
                                         f"the straight {distance * 100:.0f} cm segment collides "
                                         f"{distance * 100 * (k - 1) / steps:.0f} cm "
                                         f"along ({self._collision_words(blocked, valid)})")
-            path.append(q)
-        return np.array(path)
+        if failure is not None:
+            raise TaskPlanningError("no_ik", part, stage, str(failure)) from failure
+        return path
 
     def clearance_shift(self, part: str, task: PartTask) -> np.ndarray:
         """Where the part slides along a placed neighbour's side on its way into the target, a sideways offset (m,
