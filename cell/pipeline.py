@@ -276,6 +276,7 @@ class Pipeline:
             if again:
                 bars.append(self.console.bar(len(build.parts), "part"))
 
+        self.report.setdefault("planning_notes", [])  # present, and empty, where the first try worked
         seconds = self.console.stage_seconds
         budget = {} if self.args.time_budget is None else {"time_budget_s": self.args.time_budget}
         try:

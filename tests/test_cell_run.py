@@ -58,6 +58,7 @@ def test_full_assembly_with_given_poses_succeeds(run_with_poses):
                                                      "report.json", "trajectory.csv"]
     report = json.loads((out / "report.json").read_text())
     assert report["success"] and report["exit_code"] == 0 and report["failure"] is None
+    assert report["planning_notes"] == [] and report["jig_turn_deg"] == 0.0  # built at the first try
     assert sorted(p["order"] for p in report["parts"]) == [1, 2, 3]
     for part in report["parts"]:
         assert part["within_tolerance"], part
