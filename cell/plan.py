@@ -246,18 +246,17 @@ class _KitReach(Reach):
     def _chain(self, poses: list[Pose], seed: np.ndarray | None,
                checks: list[tuple[frozenset[str], frozenset[str]]] | None,
                load: JointTorques | None = None, held: tuple[bool, ...] = (), elsewhere: bool = False,
-               first_ik: IKSettings | None = None, segments: tuple[tuple[int, int, int], ...] = (),
-               lines: tuple[tuple[int, float], ...] = (), accept=None):
+               first_ik: IKSettings | None = None, lines: tuple[tuple[int, float, int], ...] = (), accept=None):
         """IK for ``poses`` in turn (each seeded from the previous), each valid ignoring its (ignore, hand_ignore)
-        sets (see :meth:`RobotCollisionChecker.first_invalid`; no collision check when ``checks`` is None), the
-        joint-space ``segments`` (from, to, index of the checks) between them valid too, and, where ``held``,
-        holding the ``load``; or None. The first attempt starts from ``seed``; the others from where
-        the last one left the arm, or, ``elsewhere``, from random configurations (the arm is redundant: another
-        elbow may clear what the first one meets). The first pose's inverse kinematics uses ``first_ik`` (default:
-        the planner's settings, few restarts), the others start from the pose before. Each of ``lines`` (index,
-        step in m) is the straight TCP line from the first pose to that pose, which inverse kinematics must follow
-        from the first configuration (:meth:`cell.robot.Panda.tcp_line`) as the task planner's straight moves do.
-        ``accept(configurations)``, where given, must hold too."""
+        sets (see :meth:`RobotCollisionChecker.first_invalid`; no collision check when ``checks`` is None), and,
+        where ``held``, holding the ``load``; or None. Each of ``lines`` (index, step in m, index of the checks) is
+        the straight TCP line from the first pose to that one, which the task planner moves on: inverse kinematics
+        must follow it from the first configuration without a jump between branches
+        (:meth:`cell.robot.Panda.tcp_line`), every step of it valid as those checks say. The first attempt starts
+        from ``seed``; the others from where the last one left the arm, or, ``elsewhere``, from random
+        configurations (the arm is redundant: another elbow may clear what the first one meets). The first pose's
+        inverse kinematics uses ``first_ik`` (default: the planner's settings, few restarts), the others start from
+        the pose before. ``accept(configurations)``, where given, must hold too."""
         self.chain_unreached = True  # no attempt found inverse kinematics for every pose
         if not all(self._within_reach(pose) for pose in poses):
             return None
@@ -281,10 +280,8 @@ class _KitReach(Reach):
             free = checks is None or (
                 all(self.checker.is_valid(q, ignore=ignore, hand_ignore=hand_ignore)
                     for q, (ignore, hand_ignore) in zip(configurations, checks))
-                and all(self.checker.segment_valid(configurations[a], configurations[b], ignore=checks[k][0],
-                                                   hand_ignore=checks[k][1], max_step_m=KIT_SEGMENT_STEP_M)
-                        for a, b, k in segments)
-                and all(self._line_followed(configurations[0], poses[0], poses[k], step_m) for k, step_m in lines)
+                and all(self._line_clear(configurations[0], poses[0], poses[end], step_m, *checks[k])
+                        for end, step_m, k in lines)
                 and (accept is None or accept(configurations)))
             if load is not None and not all(load.within(q[None])[0] for q, h in zip(configurations, held) if h):
                 self.too_heavy += int(free)  # it would have worked, but for the part's weight
@@ -293,17 +290,20 @@ class _KitReach(Reach):
                 return configurations
         return None
 
-    def _line_followed(self, q_start: np.ndarray, world_from_tcp_start: Pose, world_from_tcp_end: Pose,
-                       step_m: float) -> bool:
+    def _line_clear(self, q_start: np.ndarray, world_from_tcp_start: Pose, world_from_tcp_end: Pose, step_m: float,
+                    ignore: frozenset[str], hand_ignore: frozenset[str]) -> bool:
         """Whether inverse kinematics follows the straight TCP line from ``q_start`` to ``world_from_tcp_end`` with
-        no jump between branches (chair_16's leg_front was kitted with a pick whose approach needed one, and the
-        task planner refused the jig's placement for it, at two turns)."""
+        no jump between branches, every step between its configurations clear of the checker's obstacles but
+        those ignored. Checked as joint-space lines between the ends, chair_16's leg_front was kitted with a pick
+        whose approach needed such a jump, and desk_mikael_1064's part_02 with a retreat whose links met; the task
+        planner refused the jig's placement for them."""
         offset = np.asarray(world_from_tcp_end.position) - np.asarray(world_from_tcp_start.position)
         try:
-            self.panda.tcp_line(q_start, world_from_tcp_start, offset, self.seed, step_m)
+            path = self.panda.tcp_line(q_start, world_from_tcp_start, offset, self.seed, step_m)
         except StraightLineError:
             return False
-        return True
+        return all(self.checker.segment_valid(a, b, ignore=ignore, hand_ignore=hand_ignore,
+                                              max_step_m=KIT_SEGMENT_STEP_M) for a, b in zip(path[:-1], path[1:]))
 
     def _within_reach(self, world_from_tcp: Pose) -> bool:
         """A quick necessary condition before inverse kinematics: the flange (the hand's length back from the
@@ -345,20 +345,17 @@ class _KitReach(Reach):
     # part is in the hand, not at its target; end of the retreat: clear of everything, the released part included
     _AT_TARGET_IGNORES = ((frozenset(), frozenset({SELF})), (frozenset({SELF}), frozenset()),
                           (frozenset(), frozenset()))
-    # the straight lines between them, as joint-space segments (from, to, checked as): the insertion from the
-    # pre-place to the release (the part in the hand), the retreat from the release (the opened fingers around the
-    # part); at the pick, the approach from the pre-grasp to the grasp (the hand around the part) and the lift
-    # (the part in the hand). The first configurations checked alone let an arm meet a kitted part halfway along
-    # (cabinet_1's bottom: link 7 met drawer_1_side_right on the approach to its pick)
-    _TARGET_SEGMENTS = ((1, 0, 1), (0, 2, 0))
-    _PICK_SEGMENTS = ((1, 0, 0), (0, 2, 2))
-    # the straight TCP lines the task planner solves from the release (the insertion backwards, the retreat) and
-    # from the grasp (the approach backwards, the lift): (index of the line's other end, inverse kinematics step)
-    _TARGET_LINES = ((1, INSERTION_STEP_M), (2, CARTESIAN_STEP_M))
-    _PICK_LINES = ((1, CARTESIAN_STEP_M), (2, CARTESIAN_STEP_M))
-    # the same (from, to) pairs at the pick and at the target: still_clear checks either kind of configurations
-    _STRAIGHT_LINES = tuple(segment[:2] for segment in _TARGET_SEGMENTS)
-    assert _STRAIGHT_LINES == tuple(segment[:2] for segment in _PICK_SEGMENTS)
+    # the straight TCP lines between them, which the task planner solves from the release (the insertion
+    # backwards, from the pre-place: the part in the hand; the retreat: the opened fingers around the part) and from
+    # the grasp (the approach backwards, from the pre-grasp: the hand around the part; the lift: the part in the
+    # hand), as (index of the line's other end, inverse kinematics step, index of the checks). The configurations
+    # checked alone let an arm meet a kitted part halfway along (cabinet_1's bottom: link 7 met
+    # drawer_1_side_right on the approach to its pick)
+    _TARGET_LINES = ((1, INSERTION_STEP_M, 1), (2, CARTESIAN_STEP_M, 0))
+    _PICK_LINES = ((1, CARTESIAN_STEP_M, 0), (2, CARTESIAN_STEP_M, 2))
+    # the same lines as joint-space segments (from, to), at the pick and at the target: still_clear checks either
+    # kind of configurations against the kit laid out later
+    _STRAIGHT_LINES = ((1, 0), (0, 2))
 
     def at_target(self, part: str, grasp: Grasp, kit: list[tuple[trimesh.Trimesh, Pose]] = ()) -> tuple | None:
         """The arm configurations at ``part``'s release, pre-place and retreat's end with ``grasp``, clear of the
@@ -373,19 +370,19 @@ class _KitReach(Reach):
             retreat_clear = (None if not kit else
                              lambda configurations: self._retreat_clear(configurations, grasp.opening_m, kit))
             found = self._chain(poses, self.home_q, checks, load, (True, True, False), elsewhere=bool(kit),
-                                segments=self._TARGET_SEGMENTS, lines=self._TARGET_LINES, accept=retreat_clear)
+                                lines=self._TARGET_LINES, accept=retreat_clear)
             reached = not self.chain_unreached
             if found is None and not kit:  # harder: other elbows, and more starts for the release (the first
                 # attempts start at home and near each other)
                 start = pose_rng(poses[0], self.seed + 1).uniform(self.panda.lower_limits, self.panda.upper_limits)
                 found = self._chain(poses, start, checks, load, (True, True, False), elsewhere=True,
-                                    first_ik=IKSettings(), segments=self._TARGET_SEGMENTS, lines=self._TARGET_LINES)
+                                    first_ik=IKSettings(), lines=self._TARGET_LINES)
                 reached = reached or not self.chain_unreached
                 # at the edge of the reach (cabinet_13's side panel), random starts rarely converge: from the
                 # releases found for other grasps and parts, nearby
                 for seed in (self.release_seeds[::-1] if found is None and self.chain_unreached else []):
                     found = self._chain(poses, seed, checks, load, (True, True, False), first_ik=IKSettings(),
-                                        segments=self._TARGET_SEGMENTS, lines=self._TARGET_LINES)
+                                        lines=self._TARGET_LINES)
                     reached = reached or not self.chain_unreached
                     if found is not None or not self.chain_unreached:
                         break
@@ -452,8 +449,7 @@ class _KitReach(Reach):
         # pre-grasp: clear of the part; lifted: the part is in the hand
         none, hand_only = (frozenset(), frozenset()), (frozenset(), frozenset({SELF}))
         found = self._chain([tcp, pre, lifted], self.home_q, [hand_only, none, (frozenset({SELF}), frozenset())],
-                            self._load(part, grasp), (True, False, True), segments=self._PICK_SEGMENTS,
-                            lines=self._PICK_LINES)
+                            self._load(part, grasp), (True, False, True), lines=self._PICK_LINES)
         return None if found is None else (tuple(found), target, max(grasp.opening_m, grasp.opening_at_pick_m))
 
     def _load(self, part: str, grasp: Grasp) -> JointTorques | None:
@@ -473,7 +469,7 @@ class _KitReach(Reach):
                         for a, b in self._STRAIGHT_LINES)
                 and (len(reach[1]) != 3 or self._retreat_clear(reach[1], reach[2], obstacles)))
 
-    _RETREAT = _TARGET_SEGMENTS[1][:2]  # at the target: from the release to the end of the retreat
+    _RETREAT = (0, 2)  # at the target: from the release to the end of the retreat
 
     def _retreat_clear(self, at_target, opening_m: float, kit) -> bool:
         """Whether the retreat at the target (release to retreat's end, the hand opened to ``opening_m``) keeps

@@ -218,7 +218,7 @@ def test_the_jig_slides_toward_the_robot_and_turns_about_its_own_origin():
 
 def test_kitting_checks_the_straight_lines_between_its_arm_configurations():
     """Two TCP poses 30 cm apart, a box halfway between them: the arm configurations at both ends are clear, the
-    joint-space line between them is not, and a chain asked to check that line finds none (kitting checks the
+    straight TCP line between them is not, and a chain asked to check that line finds none (kitting checks the
     approach, lift, insertion and retreat so: cabinet_1's arm met a kitted part halfway along an approach)."""
     scene = load_scene()
     top_z = scene.table.top_z
@@ -234,7 +234,7 @@ def test_kitting_checks_the_straight_lines_between_its_arm_configurations():
         ends = reach._chain([start, end], reach.home_q, [clear, clear])
         assert ends is not None
         assert not reach.checker.segment_valid(ends[0], ends[1])
-        assert reach._chain([start, end], reach.home_q, [clear, clear], segments=((0, 1, 0),)) is None
+        assert reach._chain([start, end], reach.home_q, [clear, clear], lines=((1, 0.02, 0),)) is None
 
 
 def test_a_grasp_at_the_target_clears_the_whole_insertion():
