@@ -12,6 +12,7 @@ from cell.robot import Panda
 from cell.task import (
     CARRY_CLEARANCE_M,
     DENSE_CHECK_RAD,
+    FARTHER_APPROACH_M,
     INSERTION_M,
     INSERTION_SPEED_M_S,
     JOINT_LIMIT_MARGIN_RAD,
@@ -34,7 +35,8 @@ from cell.task import (
     plan_tasks,
 )
 from planning.collision import ConvexPart
-from planning.grasp import Grasp
+from planning.grasp import APPROACH_M, Grasp
+from planning.motion import MotionSettings
 from planning.pose import Pose
 from planning.robot_collision import LINK_CLEARANCE_M
 from planning.timing import time_path
@@ -473,6 +475,29 @@ def test_planning_picks_up_at_the_part_that_failed_with_another_grasp(panda):
     assert labels[-2:] == ["open", "return home"] and fractions == [0.5, 1.0]
     with pytest.raises(ValueError, match="checkpoint before 'second'"):
         plan_tasks(world, tasks[::-1], home_q, resume=checkpoint)
+
+
+def test_where_no_path_reaches_the_pre_grasp_the_approach_starts_farther_back(panda):
+    """A box stands where the arm passes on its way to a block's pre-grasp. With no time to search (a zero search
+    budget: only the straight joint-space line from start to goal is tried), no path reaches the pre-grasp; the
+    straight approach is extended 8 cm farther back along its axis, the line to its new start is clear, and the
+    block is placed (bookcase_expedit_0373's part_01: a pre-grasp in a pocket among the kit's parts that two 5 s
+    searches missed, where one 8 cm farther back was four times as free)."""
+    down_tcp, up = [0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
+    block = trimesh.creation.box((0.03, 0.01, 0.03))
+    box = ConvexPart.from_mesh("box", trimesh.creation.box((0.05, 0.117, 0.071)))
+    world = CellWorld(panda, Pose.identity(), {"box": (box, Pose([0.54, 0.133, 0.256], up))},
+                      {"block": ConvexPart.from_mesh("block", block)}, np.random.default_rng(0),
+                      MotionSettings(time_limit_s=0.0, wall_limit_s=None))
+    grasp = Grasp(Pose([0.0, 0.0, 0.0], down_tcp), width_m=0.01, opening_m=0.02, score=1.0, centroid_score=1.0,
+                  contact_score=1.0)
+    task = PartTask("block", Pose([0.45, 0.3, 0.115], up), Pose([0.6, 0.4, 0.115], up), grasp, DOWN, (), "pad")
+    steps = plan_tasks(world, [task], np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])).program.steps
+    approach = next(step for step in steps if step.label == "block: approach")
+    _, q, _, _ = approach.timed.sample(100.0)
+    ends = [panda.forward_tcp(q[0]).position, panda.forward_tcp(q[-1]).position]
+    np.testing.assert_allclose(ends[1], [0.45, 0.3, 0.115], atol=1e-4)
+    np.testing.assert_allclose(ends[0], [0.45, 0.3, 0.115 + APPROACH_M + FARTHER_APPROACH_M], atol=1e-4)
 
 
 def test_a_retreat_keeps_its_clearance_from_parts_in_the_kit(panda):
