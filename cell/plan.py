@@ -214,9 +214,10 @@ class _KitReach(Reach):
         self._part_meshes = {id(mesh) for mesh in meshes.values()}
         table = _table(scene)
         self._convex: dict[int, tuple[trimesh.Trimesh, ConvexPart]] = {}  # id(mesh) -> (mesh, its convex pieces)
-        # the fixed obstacles: the table and the jig's pads (an arm link that met a pad was refused only by the task
-        # planner, and the jig's whole placement with it: table_16's leg_rear_left at its pick, link 6)
-        self.table = {o.name: (self._convex_part(o.mesh), o.world_from_obstacle.matrix()) for o in [table, *pads]}
+        self.table = {"table": (self._convex_part(table.mesh), table.world_from_obstacle.matrix())}
+        # the jig's pads: an arm link that met one was refused only by the task planner, and the jig's whole
+        # placement with it (table_16's leg_rear_left at its pick, link 6)
+        self.pads = {o.name: (self._convex_part(o.mesh), o.world_from_obstacle.matrix()) for o in pads}
         self.settings = IKSettings(restarts=4)
         self.shoulder = scene.robot.world_from_base.apply(np.array([[0.0, 0.0, SHOULDER_HEIGHT_M]]))[0]
         self.at_target_cache: dict[tuple, tuple | None] = {}  # (part, grasp, opening, kit) -> configurations
@@ -226,8 +227,8 @@ class _KitReach(Reach):
         self.heavy_parts: dict[str, int] = {}  # part -> how many of its grasps failed at the target for its weight
         self.reached_at_target: dict[str, bool] = {}  # part -> whether any of its grasps had IK at its target
 
-    def _world(self, kit: list[tuple[trimesh.Trimesh, Pose]], jig_parts: list[str]) -> dict:
-        out = dict(self.table)
+    def _world(self, kit: list[tuple[trimesh.Trimesh, Pose]], jig_parts: list[str], pads: bool = True) -> dict:
+        out = dict(self.table) | (self.pads if pads else {})
         for k, (mesh, pose) in enumerate(kit):
             out[f"kit {k}"] = (self._convex_part(mesh), pose.matrix())
         for name in jig_parts:
@@ -460,8 +461,11 @@ class _KitReach(Reach):
     def still_clear(self, reach, obstacles) -> bool:
         """Whether the arm configurations of ``reach`` (at the pick and at the target), and the straight lines
         between them, touch neither the table nor ``obstacles`` (kitting parts and pedestals), the retreat at the
-        target keeping :data:`RETREAT_KIT_CLEARANCE_M` from the parts (see :meth:`_retreat_clear`)."""
-        self.checker.set_obstacles(self._world(list(obstacles), []))
+        target keeping :data:`RETREAT_KIT_CLEARANCE_M` from the parts (see :meth:`_retreat_clear`). The jig's pads,
+        which the configurations were found clear of, are left out: the straight lines here are joint-space lines
+        between their ends, not the TCP lines the arm moves on, and a release low beside a pad whose insertion and
+        retreat were clear along their TCP lines met the pad between the ends (cabinet_akurum_0011's part_02)."""
+        self.checker.set_obstacles(self._world(list(obstacles), [], pads=False))
         self.checker.hold(None, opening_m=reach[2])
         return (all(self.checker.is_valid(q) for q in reach[0] + reach[1])
                 and all(self.checker.segment_valid(configurations[a], configurations[b], max_step_m=KIT_SEGMENT_STEP_M)

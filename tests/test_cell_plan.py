@@ -115,9 +115,15 @@ def test_the_arm_at_a_target_keeps_clear_of_the_jigs_pads():
         pad = StaticObstacle("pad board", trimesh.creation.box((0.05, 0.05, 0.05)), Pose(forearm, [1.0, 0.0, 0.0, 0.0]))
         padded = _KitReach(panda, scene, 0, home_q, {"board": target}, {"board": BOARD}, ["board"], {"board": down},
                            pads=[pad])
-        assert not padded.still_clear(((), first, grasp.opening_m), [])  # the first configurations meet the pad
+
+        def clear_of_the_pad(configurations) -> bool:
+            padded.checker.set_obstacles(padded.pads)
+            padded.checker.hold(None, opening_m=grasp.opening_m)
+            return all(padded.checker.is_valid(np.asarray(q)) for q in configurations)
+
+        assert not clear_of_the_pad(first)
         found = padded.at_target("board", grasp)
-        assert found is not None and padded.still_clear(((), found, grasp.opening_m), [])
+        assert found is not None and clear_of_the_pad(found)
 
 
 def test_a_pick_whose_straight_approach_needs_a_jump_between_ik_branches_is_not_kitted():
