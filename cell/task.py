@@ -512,8 +512,9 @@ def _farther_approach(world: CellWorld, task: PartTask, approach_path: np.ndarra
     farther back along the grasp's approach axis, the extension checked as the approach was (``valid``, the hand
     opened for the pick); None where that line is blocked or leaves the reachable space. A pre-grasp low among the
     kit's parts and pedestals can lie in a pocket of joint space that a search seldom enters: 5% of the
-    configurations within 0.2 rad of bookcase_expedit_0373's part_01's were free (its hand between the table, a
-    pedestal and two parts), 21% of those 8 cm farther back, and its move to the pick failed two 5 s searches."""
+    configurations within 0.2 rad of bookcase_expedit_0373's part_01's pre-grasp were free (its hand between the
+    table, a pedestal and two parts), 21% of those 8 cm farther back, and its move to the pick failed two 5 s
+    searches."""
     tcp_pick = task.world_from_pick @ task.grasp.part_from_tcp
     back = -tcp_pick.rotation[:, 2]
     tcp_pre = Pose(tcp_pick.position + back * APPROACH_M, tcp_pick.quat_wxyz)
