@@ -36,7 +36,6 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence, Set
 from dataclasses import dataclass, field, replace
-from typing import NamedTuple
 
 import numpy as np
 
@@ -85,9 +84,6 @@ TRANSIT_CLEARANCE_M = 0.003  # ... and free-space moves keep this from every obs
 # where no path reaches the pre-grasp (a pocket among the kit's parts and pedestals), the approach starts this much
 # farther back along its axis
 FARTHER_APPROACH_M = 0.08
-# where no path reaches kitting's release configuration, another inverse-kinematics solution is tried if it differs
-# from it by more than this in some joint (another branch, not the same configuration found again)
-OTHER_BRANCH_RAD = 0.5
 NEAR_END_RAD = 0.15  # ... except this close (joint-space distance) to an end that lies closer than that
 # the retreat's links and fingers keep this from the parts lying in the kit (the exact check keeps LINK_CLEARANCE_M,
 # 1.5 mm, within which PyBullet's link hulls, padded about 1.1 mm, touch a part that settled a little on its pedestal)
@@ -116,7 +112,7 @@ class TaskPlanningError(RuntimeError):
 
     def __init__(self, kind: str, part: str, stage: str, message: str) -> None:
         super().__init__(f"part {part!r}, {stage}: {message}")
-        self.kind, self.part, self.stage, self.message = kind, part, stage, message
+        self.kind, self.part, self.stage = kind, part, stage
         # set by plan_tasks: the program planned before the part it was planning when this was raised
         self.checkpoint: TaskCheckpoint | None = None
 
@@ -259,7 +255,8 @@ class CellWorld:
                  hint_q: np.ndarray | None = None) -> np.ndarray:
         """A collision-free IK solution at least :data:`JOINT_LIMIT_MARGIN_RAD` inside the joint limits: ``hint_q``
         if it is one, else the one nearest ``seed_q`` first (a release from kitting's hint 6 mrad inside joint 7's
-        limit went past it in the simulator as the arm lowered a cabinet's 3 kg top)."""
+        limit went past it in the simulator as the arm lowered a cabinet's 3 kg top). Where none is found, the
+        message says why ``hint_q`` (kitting's configuration) was not taken."""
         hint_refused = ""  # why the hint was not taken, for the message where no solution is found either
         if hint_q is not None:
             if not self.panda.within_limits(hint_q, JOINT_LIMIT_MARGIN_RAD):
@@ -740,22 +737,51 @@ def _plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray, pro
         valid_insert = world.validity(held_ignore=frozenset(task.touches_at_target))
         place_q = world.solve_ik(tcp_place, lift[-1], valid_insert, name, "release at the target",
                                  hint_q=task.place_q_hint)
-        try:
-            carried = _carry_to_target(world, task, lift[-1], place_q, tcp_place, valid_insert)
-        except TaskPlanningError as exc:
-            other_q = _other_release(world, task, place_q, tcp_place, lift[-1], valid_insert) \
-                if exc.kind == "timeout" else None
-            if other_q is None:
-                raise
+        insertion, corner = _insertion(world, place_q, tcp_place, task.insertion_direction,
+                                       world.clearance_shift(name, task), valid_insert, name)
+        # carry with the part grown by a margin (clear of everything by more than the simulator's contact slop);
+        # where the pre-place pose already lies between neighbours, the insertion starts farther back, where the
+        # part is clear (a drawer's back between its sides), or else the carry checks the part as it is (or pulled
+        # in) and keeps the transit clearance from everything but the neighbours it touches at its target, except
+        # near its ends: planned with no clearance at all, a drawer front carried past the kit pushed the
+        # cabinet's top lying there 4-5 mm off its pedestal (the simulator's contacts act before bodies touch)
+        carry_margin_m = -CARRY_CLEARANCE_M
+        world.hold(name, grasp, grasp.width_m, margin_m=carry_margin_m)
+        valid = world.validity(transit=True)
+        if not valid(insertion[0]) and valid(lift[-1]):
+            found = _lead_in(world, name, grasp, insertion[0], task.insertion_direction, valid, valid_insert)
+            if found is not None:
+                lead_in, sideways = found
+                insertion = np.concatenate([lead_in, insertion[1:]])
+                corner = (((len(lead_in) - 1,) if sideways else ())  # it turns into the insertion there
+                          + tuple(k + len(lead_in) - 1 for k in corner))
+        if not valid(insertion[0]) or not valid(lift[-1]):
+            carry_margin_m = 0.0  # as it is, if its ends allow
+            world.hold(name, grasp, grasp.width_m, margin_m=carry_margin_m)
+            valid = world.validity()
+            if not valid(insertion[0]) or not valid(lift[-1]):
+                carry_margin_m = HELD_MARGIN_M
+                world.hold(name, grasp, grasp.width_m, margin_m=carry_margin_m)
+                valid = world.validity()
+            if not valid(insertion[0]):
+                raise TaskPlanningError("goal_in_collision", name, "move to the target", "the pre-place "
+                                        f"configuration collides ({world._collision_words(insertion[0], valid)})"
+                                        + _still_inside_words(world, name, task, insertion[0], valid))
+            exact = valid
+            valid = _among_neighbours_validity(world, task, exact, (lift[-1], insertion[0]))
             try:
-                carried = _carry_to_target(world, task, lift[-1], other_q, tcp_place, valid_insert)
-            except TaskPlanningError as other:
-                raise TaskPlanningError(exc.kind, name, exc.stage, f"{exc.message}; from another arm configuration "
-                                        f"at the release, {other.stage}: {other.message}") from other
-            place_q = other_q
-        insertion, corner = carried.insertion, carried.corner
-        world.hold(name, grasp, grasp.width_m, margin_m=carried.margin_m)
-        add_motion(name, "move to the target", carried.path, carried.valid, name, carrying)
+                carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
+            except TaskPlanningError:
+                valid = exact
+                carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
+        else:
+            carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
+        carry, entry = _slot_entry(world, name, grasp, carry)
+        if len(entry) > 1:  # the carry's end lies among neighbours: entered like the insertion, which it joins
+            insertion = np.concatenate([entry, insertion[1:]])
+            corner = (len(entry) - 1,) + tuple(k + len(entry) - 1 for k in corner)
+        world.hold(name, grasp, grasp.width_m, margin_m=carry_margin_m)
+        add_motion(name, "move to the target", carry, valid, name, carrying)
         world.hold(name, grasp, grasp.width_m)
         program.steps.append(MotionStep(f"{name}: insert",
                                         _timed_insertion(world, insertion, valid_insert, name, carrying, corner), name))
@@ -784,79 +810,6 @@ def _plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray, pro
         if world.validity()(park):
             program.steps.append(GripperStep("open", MAX_OPENING_M, None))
     return plan
-
-
-class _Carry(NamedTuple):
-    """The carry from the lift's end to the pre-place configuration, and the insertion after it."""
-
-    path: np.ndarray  # (K, 7) rad
-    valid: object  # the check it was planned with
-    margin_m: float  # the held part's margin in that check (negative: grown)
-    insertion: np.ndarray  # (M, 7) rad, from the pre-place configuration to the release
-    corner: tuple[int, ...]  # waypoints of the insertion where it turns
-
-
-def _carry_to_target(world: CellWorld, task: PartTask, lift_end: np.ndarray, place_q: np.ndarray,
-                     tcp_place: Pose, valid_insert) -> _Carry:
-    """The carry and insertion of ``task``'s part to the release at ``place_q`` (TCP at ``tcp_place``, world)."""
-    name, grasp = task.part, task.grasp
-    insertion, corner = _insertion(world, place_q, tcp_place, task.insertion_direction,
-                                   world.clearance_shift(name, task), valid_insert, name)
-    # carry with the part grown by a margin (clear of everything by more than the simulator's contact slop);
-    # where the pre-place pose already lies between neighbours, the insertion starts farther back, where the
-    # part is clear (a drawer's back between its sides), or else the carry checks the part as it is (or pulled
-    # in) and keeps the transit clearance from everything but the neighbours it touches at its target, except
-    # near its ends: planned with no clearance at all, a drawer front carried past the kit pushed the
-    # cabinet's top lying there 4-5 mm off its pedestal (the simulator's contacts act before bodies touch)
-    carry_margin_m = -CARRY_CLEARANCE_M
-    world.hold(name, grasp, grasp.width_m, margin_m=carry_margin_m)
-    valid = world.validity(transit=True)
-    if not valid(insertion[0]) and valid(lift_end):
-        found = _lead_in(world, name, grasp, insertion[0], task.insertion_direction, valid, valid_insert)
-        if found is not None:
-            lead_in, sideways = found
-            insertion = np.concatenate([lead_in, insertion[1:]])
-            corner = (((len(lead_in) - 1,) if sideways else ())  # it turns into the insertion there
-                      + tuple(k + len(lead_in) - 1 for k in corner))
-    if not valid(insertion[0]) or not valid(lift_end):
-        carry_margin_m = 0.0  # as it is, if its ends allow
-        world.hold(name, grasp, grasp.width_m, margin_m=carry_margin_m)
-        valid = world.validity()
-        if not valid(insertion[0]) or not valid(lift_end):
-            carry_margin_m = HELD_MARGIN_M
-            world.hold(name, grasp, grasp.width_m, margin_m=carry_margin_m)
-            valid = world.validity()
-        if not valid(insertion[0]):
-            raise TaskPlanningError("goal_in_collision", name, "move to the target", "the pre-place "
-                                    f"configuration collides ({world._collision_words(insertion[0], valid)})"
-                                    + _still_inside_words(world, name, task, insertion[0], valid))
-        exact = valid
-        valid = _among_neighbours_validity(world, task, exact, (lift_end, insertion[0]))
-        try:
-            carry = world.transit(lift_end, insertion[0], valid, name, "move to the target")
-        except TaskPlanningError:
-            valid = exact
-            carry = world.transit(lift_end, insertion[0], valid, name, "move to the target")
-    else:
-        carry = world.transit(lift_end, insertion[0], valid, name, "move to the target")
-    carry, entry = _slot_entry(world, name, grasp, carry)
-    if len(entry) > 1:  # the carry's end lies among neighbours: entered like the insertion, which it joins
-        insertion = np.concatenate([entry, insertion[1:]])
-        corner = (len(entry) - 1,) + tuple(k + len(entry) - 1 for k in corner)
-    return _Carry(carry, valid, carry_margin_m, insertion, corner)
-
-
-def _other_release(world: CellWorld, task: PartTask, place_q: np.ndarray, tcp_place: Pose, lift_end: np.ndarray,
-                   valid_insert) -> np.ndarray | None:
-    """A collision-free release configuration on another inverse-kinematics branch than ``place_q``: the one
-    nearest the lift's end, where no path reached ``place_q`` (kitting's hint, which may be folded: the arm
-    carried ``bookcase_hensvik_0565``'s ``part_06`` toward a release with joint 1 at 2.4 rad, where no search
-    found a way in). None where the nearest solution is ``place_q``'s own branch or there is none."""
-    try:
-        q = world.solve_ik(tcp_place, lift_end, valid_insert, task.part, "release at the target")
-    except TaskPlanningError:
-        return None
-    return q if float(np.max(np.abs(q - place_q))) > OTHER_BRANCH_RAD else None
 
 
 def _opening_after_retreat(world: CellWorld, program: Program, q: np.ndarray, released_m: float, wanted_m: float,

@@ -17,7 +17,6 @@ from cell.task import (
     INSERTION_SPEED_M_S,
     JOINT_LIMIT_MARGIN_RAD,
     LEAD_IN_STEPS_M,
-    OTHER_BRANCH_RAD,
     PANDA_LIMITS,
     RETREAT_KIT_CLEARANCE_M,
     SLIDE_CLEARANCE_M,
@@ -520,36 +519,6 @@ def test_where_no_path_reaches_the_pre_grasp_the_approach_starts_farther_back(pa
     np.testing.assert_allclose(ends[0], [0.45, 0.3, 0.115 + APPROACH_M + FARTHER_APPROACH_M], atol=1e-4)
 
 
-
-def test_where_no_path_reaches_kittings_release_the_arm_releases_from_another_ik_branch(panda):
-    """Kitting's release configuration for a block leans the arm back over its shoulder (joint 2 at -1.6 rad), and
-    a box stands where the arm would swing on its way there. With no time to search (a zero search budget: only
-    the straight joint-space line), no path reaches it: the old plan failed with a timeout at "move to the
-    target". The arm releases the block from the inverse-kinematics solution nearest the lift's end instead, on
-    another branch, and the block is placed (bookcase_hensvik_0565's part_06, whose release from kitting had
-    joint 1 at 2.4 rad and no path in two 5 s searches)."""
-    down_tcp, up = [0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
-    block = trimesh.creation.box((0.03, 0.01, 0.03))
-    box = ConvexPart.from_mesh("box", trimesh.creation.box((0.08, 0.08, 0.08)))
-    world = CellWorld(panda, Pose.identity(), {"box": (box, Pose([-0.12, -0.2, 0.6], up))},
-                      {"block": ConvexPart.from_mesh("block", block)}, np.random.default_rng(0),
-                      MotionSettings(time_limit_s=0.0, wall_limit_s=None))
-    grasp = Grasp(Pose([0.0, 0.0, 0.0], down_tcp), width_m=0.01, opening_m=0.02, score=1.0, centroid_score=1.0,
-                  contact_score=1.0)
-    target = Pose([0.5, 0.0, 0.2], up)
-    leaning_back = panda.inverse_tcp(target @ grasp.part_from_tcp, np.random.default_rng(0),
-                                     seed_q=np.array([1.76, -1.69, -1.35, -2.25, -1.53, 1.32, 1.65]))
-    assert leaning_back[1] < -1.5
-    task = PartTask("block", Pose([0.45, 0.3, 0.115], up), target, grasp, DOWN, (), "pad",
-                    place_q_hint=leaning_back)
-    plan = plan_tasks(world, [task], np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8]))
-    place_q = plan.parts[0].place_q
-    assert np.max(np.abs(place_q - leaning_back)) > OTHER_BRANCH_RAD
-    assert abs(place_q[1]) < 0.5  # the shoulder upright
-    assert panda.forward_tcp(place_q).distance(target @ grasp.part_from_tcp)[0] < 1e-4
-    insert = next(step for step in plan.program.steps if step.label == "block: insert")
-    _, q, _, _ = insert.timed.sample(100.0)
-    np.testing.assert_allclose(q[-1], place_q, atol=1e-6)  # the insertion ends at the new release
 
 def test_a_retreat_keeps_its_clearance_from_parts_in_the_kit(panda):
     """The open hand retreats from a released plank. A block beside the hand, 2 mm from it where the retreat ends
