@@ -9,6 +9,7 @@ program is checked against the Panda's limits before anything is written.
 from __future__ import annotations
 
 import argparse
+import time
 
 import numpy as np
 
@@ -230,7 +231,7 @@ class Pipeline:
     def _plan_build(self, build: Assembly, build_from_target: Pose) -> None:
         """Plan ``build`` (the target as the jig holds it: ``build_from_target`` is the target's assembly frame in
         the build's) or raise :class:`StageFailed` (exit 3)."""
-        from cell.plan import PlanningFailed, plan_cell
+        from cell.plan import DEFAULT_TIME_BUDGET_S, PlanningFailed, plan_cell
         from planning.motion import MotionSettings
         from planning.sequence import failure_summary, plan_assembly_sequence
 
@@ -279,6 +280,10 @@ class Pipeline:
         self.report.setdefault("planning_notes", [])  # present, and empty, where the first try worked
         seconds = self.console.stage_seconds
         budget = {} if self.args.time_budget is None else {"time_budget_s": self.args.time_budget}
+        self.report["time_budget_s"] = budget.get("time_budget_s", DEFAULT_TIME_BUDGET_S)
+        # the planner's own work, counted against the budget (CPU seconds), for each build tried
+        cpu_started = time.thread_time()
+        spent = self.report.setdefault("planning_cpu_s", {})
         try:
             plan = plan_cell(self.scene, build, sequence, seed=self.args.seed,
                              motion=MotionSettings(planner=self.args.planner, seed=self.args.seed),
@@ -292,6 +297,7 @@ class Pipeline:
         finally:
             for bar in bars:
                 bar.close()
+            spent["upside_down" if upside_down else "standing"] = time.thread_time() - cpu_started
         self.plan = plan
         for name in ("kitting", "motion", "timing"):
             seconds[name] = seconds.get(name, 0.0) + plan.seconds.get(name, 0.0)

@@ -5,6 +5,8 @@
     {"success": bool, "exit_code": int, "failure": null | {"stage", "part", "message"},
      "inputs": {"image", "parts", "poses", "scene", "seed", "units"},
      "stages": {"perception": seconds, ...},
+     "time_budget_s": float, "planning_cpu_s": {"standing": seconds, "upside_down": seconds (each build planned)},
+     "planning_notes": [{"upside_down", "note"}, ...],
      "trajectory_duration_s": float, "world_from_assembly": pose, "jig_turn_deg": float, "jig_slide_m": float,
      "upside_down": bool, "world_from_build": pose (only when upside down),
      "parts": [{"name", "order", "target_assembly_from_part", "target_world_from_part",

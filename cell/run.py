@@ -50,7 +50,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "weigh their volume at --density")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="seconds of kitting and motion planning per build (standing, then upside down) before "
-                        "the planner stops trying other placements of the jig (default 180)")
+                        "the planner stops trying other placements of the jig (default 300)")
     parser.add_argument("--no-animation", action="store_true", help="skip animation.gif (faster)")
     parser.add_argument("--quiet", action="store_true", help="no progress, only the summary")
     args = parser.parse_args(argv)

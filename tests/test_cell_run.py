@@ -14,6 +14,7 @@ import pytest
 import trimesh
 from PIL import Image
 
+from cell.plan import DEFAULT_TIME_BUDGET_S
 from cell.run import main
 from perception.synth import generate
 from planning.assembly import write_assembly
@@ -66,6 +67,11 @@ def test_full_assembly_with_given_poses_succeeds(run_with_poses):
         assert part["grasp"]["width_m"] <= 0.08
     assert set(report["stages"]) == {"perception", "repair", "sequence", "kitting", "motion", "timing",
                                      "simulation", "export"}
+    # the planner's CPU seconds: within the budget, and within the clock time of the stages it ran
+    planned_s = sum(report["stages"][stage] for stage in ("kitting", "motion", "timing"))
+    assert list(report["planning_cpu_s"]) == ["standing"] and report["time_budget_s"] == DEFAULT_TIME_BUDGET_S
+    assert 0.0 < report["planning_cpu_s"]["standing"] <= planned_s + 0.5
+    assert report["planning_cpu_s"]["standing"] < report["time_budget_s"]
     assert "success" in result.stdout and "seat" in result.stdout  # the summary table names the parts
     image = Image.open(out / "overview.png")
     assert image.size[0] == 2 * image.size[1]  # target | simulated result (no input image with --poses)
@@ -309,6 +315,7 @@ def test_a_spent_time_budget_is_named_in_the_failure(small_chair, tmp_path, caps
     assert "time budget ran out" in message
     assert "the planning time budget of 0.001 s ran out before the jig turned 90 deg was tried" in message
     assert "--time-budget SECONDS" in message
+    assert report["time_budget_s"] == 0.001 and report["planning_cpu_s"]["standing"] > 0.001  # spent, and past it
 
 
 def test_full_run_from_the_picture(small_chair, tiny_checkpoint, tmp_path, capsys):
