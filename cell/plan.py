@@ -499,8 +499,8 @@ JIG_TURNS_DEG = (0.0, 90.0, 270.0, 180.0)
 JIG_SLIDE_M = 0.06
 MOTION_RETRIES = 4  # motion planning restarts with a failing part's next grasp at most this often
 # the jig is turned about +z until the parts can be kitted and placed, within this many CPU seconds per build (the
-# procedural cabinet_5, 19 parts, took about 160 s at the jig's first placement on a 2-core machine running other
-# jobs, which 180 s cut short when they ran heavier)
+# procedural cabinet_5, 19 parts, took 216 s at the jig's first placement on 2 cores shared with three other jobs;
+# 180 s cut it short there)
 DEFAULT_TIME_BUDGET_S = 300.0
 REORDERS = 3  # a part the arm cannot place among the parts before it moves ahead of them, at most this often
 
