@@ -315,6 +315,8 @@ class Pipeline:
             self.report["world_from_build"] = pose_json(plan.world_from_assembly)
         for task in plan.tasks:
             self.entries[task.part]["target_world_from_part"] = pose_json(task.world_from_target)
+        for planned in plan.task_plan.parts:
+            self.entries[planned.part]["carry_check"] = planned.carry_check
         for slot in plan.slots:
             self.entries[slot.part]["kitting_world_from_part"] = pose_json(slot.world_from_part)
             self.entries[slot.part]["kitting_wedged"] = slot.wedged

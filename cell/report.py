@@ -13,6 +13,7 @@
                 "repair": {"translation_m", "rotation_deg"}, "insertion_direction" (the frame built on the jig,
                 +z up), "fastened_to",
                 "grasp": {"part_from_tcp", "width_m", "opening_m", "pick_opening_m"}, "kitting_world_from_part",
+                "carry_check" (how its carry to the target was checked: cell.task.CARRY_CHECKS),
                 "kitting_wedged" (it lies wedged in the kit: no pose rests otherwise),
                 "final_world_from_part", "position_error_m", "rotation_error_deg", "within_tolerance"}, ...],
      "simulation": {...: what cell.simulate measured (contacts, limit violations, ...)}}

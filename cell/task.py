@@ -133,13 +133,22 @@ class PartTask:
     payload: MassProperties | None = None  # the part's mass properties (part frame); None: carried at full speed
 
 
+# how a part's carry to its target was checked (PlannedTask.carry_check), from the safest to the last resort
+CARRY_CHECKS = ("clearance", "among neighbours", "no clearance")
+
+
 @dataclass
 class PlannedTask:
-    """The arm configurations (rad) at one part's grasp and at its release."""
+    """The arm configurations (rad) at one part's grasp and at its release, and how the carry between them was
+    checked (one of :data:`CARRY_CHECKS`): ``clearance``, the part grown by :data:`CARRY_CLEARANCE_M` and
+    :data:`TRANSIT_CLEARANCE_M` from everything; ``among neighbours``, the part as it is (or pulled in by
+    :data:`HELD_MARGIN_M`), the transit clearance from everything but the parts it touches at its target except
+    near the carry's ends; ``no clearance``, the part as it is, from everything (where that search failed)."""
 
     part: str
     grasp_q: np.ndarray
     place_q: np.ndarray
+    carry_check: str = CARRY_CHECKS[0]
 
 
 @dataclass
@@ -769,12 +778,14 @@ def _plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray, pro
                                         + _still_inside_words(world, name, task, insertion[0], valid))
             exact = valid
             valid = _among_neighbours_validity(world, task, exact, (lift[-1], insertion[0]))
+            carry_check = CARRY_CHECKS[1]
             try:
                 carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
             except TaskPlanningError:
-                valid = exact
+                valid, carry_check = exact, CARRY_CHECKS[2]
                 carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
         else:
+            carry_check = CARRY_CHECKS[0]
             carry = world.transit(lift[-1], insertion[0], valid, name, "move to the target")
         carry, entry = _slot_entry(world, name, grasp, carry)
         if len(entry) > 1:  # the carry's end lies among neighbours: entered like the insertion, which it joins
@@ -795,7 +806,7 @@ def _plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray, pro
                                       "retreat")
         add_motion(name, "retreat", retreat, valid, None)
         q = retreat[-1]
-        plan.parts.append(PlannedTask(name, grasp_q, place_q))
+        plan.parts.append(PlannedTask(name, grasp_q, place_q, carry_check))
         if progress is not None:
             progress((index + 1) / len(tasks))
     if tasks:

@@ -16,6 +16,7 @@ from PIL import Image
 
 from cell.plan import DEFAULT_TIME_BUDGET_S
 from cell.run import main
+from cell.task import CARRY_CHECKS
 from perception.synth import generate
 from planning.assembly import write_assembly
 from planning.collision import MAX_FITTING_OVERLAP_M
@@ -65,6 +66,7 @@ def test_full_assembly_with_given_poses_succeeds(run_with_poses):
         assert part["within_tolerance"], part
         assert part["position_error_m"] <= 0.005 and part["rotation_error_deg"] <= 3.0
         assert part["grasp"]["width_m"] <= 0.08
+        assert part["carry_check"] in CARRY_CHECKS
     assert set(report["stages"]) == {"perception", "repair", "sequence", "kitting", "motion", "timing",
                                      "simulation", "export"}
     # the planner's CPU seconds: within the budget, and within the clock time of the stages it ran

@@ -10,6 +10,7 @@ import trimesh
 from cell.bullet import BulletClient
 from cell.robot import Panda
 from cell.task import (
+    CARRY_CHECKS,
     CARRY_CLEARANCE_M,
     DENSE_CHECK_RAD,
     FARTHER_APPROACH_M,
@@ -519,6 +520,29 @@ def test_where_no_path_reaches_the_pre_grasp_the_approach_starts_farther_back(pa
     np.testing.assert_allclose(ends[0], [0.45, 0.3, 0.115 + APPROACH_M + FARTHER_APPROACH_M], atol=1e-4)
 
 
+
+
+def test_the_plan_says_how_each_carry_was_checked(panda):
+    """A block carried from its pick to its target in free space keeps the full clearance (``clearance``). With a
+    plate 1 mm beside it where its lift ends, the grown block cannot start there: the carry is checked with the block
+    as it is, keeping the transit clearance from everything it does not touch at its target except near its ends
+    (``among neighbours``), and the plan says so (report.json's ``carry_check``: table_6's shelf once grazed a leg
+    in simulation after a carry planned with no clearance, and nothing said which check had planned it)."""
+    down_tcp, up = [0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
+    block = ConvexPart.from_mesh("block", trimesh.creation.box((0.08, 0.01, 0.03)))
+    grasp = Grasp(Pose([0.0, 0.0, 0.0], down_tcp), width_m=0.01, opening_m=0.02, score=1.0, centroid_score=1.0,
+                  contact_score=1.0)
+    task = PartTask("block", Pose([0.45, 0.3, 0.115], up), Pose([0.6, 0.0, 0.115], up), grasp, DOWN, (), "pad")
+    # a plate level with the block's lower half where its lift ends, 1 mm off its +x end (below the hand, which
+    # it clears at the pick)
+    plate = ConvexPart.from_mesh("plate", trimesh.creation.box((0.04, 0.04, 0.006)))
+    beside_lift_end = Pose([0.45 + 0.04 + 0.001 + 0.02, 0.3, 0.203], up)
+    checks = []
+    for static in ({}, {"plate": (plate, beside_lift_end)}):
+        world = CellWorld(panda, Pose.identity(), static, {"block": block}, np.random.default_rng(0))
+        plan = plan_tasks(world, [task], np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8]))
+        checks.append(plan.parts[0].carry_check)
+    assert checks == [CARRY_CHECKS[0], CARRY_CHECKS[1]] == ["clearance", "among neighbours"]
 
 def test_a_retreat_keeps_its_clearance_from_parts_in_the_kit(panda):
     """The open hand retreats from a released plank. A block beside the hand, 2 mm from it where the retreat ends
