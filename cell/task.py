@@ -63,7 +63,7 @@ from planning.motion import (
 )
 from planning.payload import JointTorques, MassProperties, carry_limits
 from planning.pose import Pose
-from planning.robot_collision import Collision, RobotCollisionChecker
+from planning.robot_collision import Collision, RobotCollisionChecker, checking_work_s
 from planning.timing import MAX_DEVIATION_RAD, JointLimits, time_path
 
 LIFT_M = 0.10  # straight lift after grasping, world +z
@@ -432,7 +432,8 @@ class CellWorld:
         upper = np.maximum(self.panda.upper_limits - JOINT_LIMIT_MARGIN_RAD, np.maximum(start_q, goal_q))
         for _ in range(3):
             try:
-                path = plan_joint_path(valid, start_q, goal_q, lower, upper, settings, segment_valid=segment)
+                path = plan_joint_path(valid, start_q, goal_q, lower, upper, settings, segment_valid=segment,
+                                       work=checking_work_s)
             except MotionPlanningError as exc:
                 raise TaskPlanningError(exc.kind, part, stage, str(exc)) from exc
             if _dense_path_valid(valid, path, DENSE_CHECK_RAD):

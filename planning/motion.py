@@ -38,13 +38,14 @@ class MotionPlanningError(RuntimeError):
 @dataclass(frozen=True)
 class MotionSettings:
     planner: str = "RRTConnect"
-    # a search ends after this much of its own work: CPU seconds of the thread it runs on, so that a search gets as
-    # far on a busy machine as on an idle one (cut off by the clock, searches on a machine running two plans side
-    # by side failed where the same plan alone found its paths)
+    # a search ends after this much of its own work: where plan_joint_path is given a count of the work done
+    # (``work``, e.g. planning.robot_collision.checking_work_s), that count, the same on any machine, busy or idle;
+    # else CPU seconds of the thread it runs on (cut off by the clock, searches on a machine running two plans side
+    # by side failed where the same plan alone found its paths; by CPU time, they still ended at other points there)
     time_limit_s: float = 5.0
     # ... or after this many seconds by the clock, whichever comes first (None: no bound): a bound for a machine so
     # busy that the search's thread seldom runs
-    wall_limit_s: float | None = 20.0
+    wall_limit_s: float | None = 40.0
     # fraction of the joint-space diagonal between validity checks along edges (OMPL's resolution) where no
     # segment_valid is given, or for the KPIECE planners; the Panda's diagonal is about 14 rad, so 0.001 checks
     # every 0.014 rad (up to a centimetre at the hand)
@@ -113,32 +114,60 @@ def _simplify(og, information, path) -> None:
     simplifier.reduceVertices(path)
 
 
-class _SearchBudget:
-    """One search's time, started by ``start()``: ``spent()`` once its thread has worked ``cpu_s`` seconds (the
-    search runs on the thread that calls OMPL's solve, its validity checks too) or ``wall_s`` seconds have passed
-    by the clock (None: never); ``by_clock`` says the clock ended it."""
+# with a count of the work, a search also ends after this many times its limit in CPU seconds of its thread: a
+# backstop for work the count leaves out
+CPU_BACKSTOP = 4.0
 
-    def __init__(self, cpu_s: float, wall_s: float | None) -> None:
-        self.cpu_s, self.wall_s = cpu_s, wall_s
+
+class _SearchBudget:
+    """One search's time, started by ``start()``: ``spent()`` once ``work()`` has grown by ``limit_s`` (where
+    given), or its thread has worked ``limit_s`` seconds (``CPU_BACKSTOP`` times that where ``work`` is given; the
+    search runs on the thread that calls OMPL's solve, its validity checks too), or ``wall_s`` seconds have passed
+    by the clock (None: never). ``ended_by`` says which ended it: "work", "cpu" or "clock"."""
+
+    def __init__(self, limit_s: float, wall_s: float | None, work: Callable[[], float] | None = None) -> None:
+        self.limit_s, self.wall_s, self.work = limit_s, wall_s, work
+        self.cpu_s = limit_s if work is None else CPU_BACKSTOP * limit_s
         self.start()
 
     def start(self) -> None:
-        self.cpu_started, self.wall_started, self.by_clock = time.thread_time(), time.perf_counter(), False
+        self.cpu_started, self.wall_started, self.ended_by = time.thread_time(), time.perf_counter(), None
+        self.work_started = self.work() if self.work is not None else 0.0
 
     def spent(self) -> bool:
-        self.by_clock = self.wall_s is not None and time.perf_counter() - self.wall_started > self.wall_s
-        return self.by_clock or time.thread_time() - self.cpu_started > self.cpu_s
+        if self.work is not None and self.work() - self.work_started > self.limit_s:
+            self.ended_by = "work"
+        elif time.thread_time() - self.cpu_started > self.cpu_s:
+            self.ended_by = "cpu"
+        elif self.wall_s is not None and time.perf_counter() - self.wall_started > self.wall_s:
+            self.ended_by = "clock"
+        return self.ended_by is not None
+
+    def words(self, searches: int) -> str:
+        """Within what the searches ran out, as the failure says it."""
+        if self.ended_by == "clock":
+            within = f"within {self.wall_s:.1f} s by the clock (the machine is busy)"
+        elif self.ended_by == "work":
+            within = f"within {self.limit_s:.1f} s of searching, counted in collision checks"
+        else:
+            within = f"within {self.cpu_s:.1f} s of searching"
+        return within + (f", in each of {searches} searches" if searches > 1 else "")
 
 
 def plan_joint_path(is_valid: Callable[[np.ndarray], bool], start_q: np.ndarray, goal_q: np.ndarray,
                     lower: np.ndarray, upper: np.ndarray, settings: MotionSettings = MotionSettings(),
-                    segment_valid: Callable[[np.ndarray, np.ndarray], bool] | None = None) -> np.ndarray:
+                    segment_valid: Callable[[np.ndarray, np.ndarray], bool] | None = None,
+                    work: Callable[[], float] | None = None) -> np.ndarray:
     """A collision-free path (K, 7) from ``start_q`` to ``goal_q`` within [lower, upper], or raise.
 
     ``is_valid(q)``: whether one configuration (7,) radians is free. ``segment_valid(q_from, q_to)``, optional:
     whether the straight segment between two configurations is free (``q_from`` known valid); when given it checks
     the straight start-goal shortcut and every edge of the planners that allow it (RRTConnect, RRT, RRTstar, PRM,
-    BITstar), instead of single states every ``settings.check_resolution``."""
+    BITstar), instead of single states every ``settings.check_resolution``. ``work()``, optional: the work done so
+    far on this thread, in seconds as a reference machine takes for it (e.g.
+    :func:`planning.robot_collision.checking_work_s`); when given, each search ends after ``settings.time_limit_s``
+    of it, so that the same query plans the same path on any machine however busy (the seeds alike), rather than
+    after as many CPU seconds."""
     start_q, goal_q = np.asarray(start_q, dtype=np.float64), np.asarray(goal_q, dtype=np.float64)
     if settings.planner not in PLANNERS:
         raise MotionPlanningError("invalid_request", f"unknown planner {settings.planner!r}; choose one of {PLANNERS}")
@@ -175,7 +204,7 @@ def plan_joint_path(is_valid: Callable[[np.ndarray], bool], start_q: np.ndarray,
         start[i], goal[i] = float(start_q[i]), float(goal_q[i])
     setup.setStartAndGoalStates(start, goal)
     setup.setPlanner(getattr(og, settings.planner)(information))
-    budget = _SearchBudget(settings.time_limit_s, settings.wall_limit_s)
+    budget = _SearchBudget(settings.time_limit_s, settings.wall_limit_s, work)
     for _ in range(max(1, settings.searches)):
         budget.start()
         solved = setup.solve(ob.PlannerTerminationCondition(budget.spent))
@@ -186,10 +215,7 @@ def plan_joint_path(is_valid: Callable[[np.ndarray], bool], start_q: np.ndarray,
         setup.clear()
         setup.setPlanner(getattr(og, settings.planner)(information))
     else:
-        within = (f"within {settings.wall_limit_s:.1f} s by the clock (the machine is busy)" if budget.by_clock
-                  else f"within {settings.time_limit_s:.1f} s of searching")
-        searches = f", in each of {settings.searches} searches" if settings.searches > 1 else ""
-        raise MotionPlanningError("timeout", f"{settings.planner} found no path {within}{searches}")
+        raise MotionPlanningError("timeout", f"{settings.planner} found no path {budget.words(settings.searches)}")
     path = setup.getSolutionPath()
     if settings.simplify:
         _simplify(og, information, path)

@@ -23,6 +23,7 @@ each joint's distance to the farthest point it moves), coarse to fine.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import fcl
@@ -66,6 +67,35 @@ FINGER_CLEARANCE_M = 0.0012  # the fingers this far from everything but what the
 # this model touched it in the simulator
 SEGMENT_STEP_M = 0.002  # default: no point of the robot moves more than this between checks along a segment
 _BATCH = 256  # configurations per vectorised forward-kinematics / broad-phase batch
+# what each unit of collision checking costs on the reference machine (the standard 2-core Intel Xeon of
+# benchmarks/RESULTS.md), in CPU seconds: a least-squares fit of the CPU time of 80 OMPL searches in five cell runs
+# (the bundled chair and cabinet, and table_torsby_1549, bookcase_hensvik_0565 and cabinet_bjorken_0203 of
+# ../shared/furniture) on their counts, within 0.82-1.19 of it for every search over 1 s. The query terms carry
+# what each query costs besides (the validity wrappers, the torque check, OMPL's own work between checks)
+WORK_S_PER_CONFIGURATION = 9.5e-6  # forward kinematics and broad phase, per configuration
+WORK_S_PER_PAIR = 2.5e-5  # FCL's exact test, per candidate pair
+WORK_S_PER_SINGLE_QUERY = 4.1e-4  # per is_valid or first_collision (one configuration)
+WORK_S_PER_BATCH_QUERY = 3.3e-3  # per first_invalid or segment_valid (a batch)
+
+
+class _CheckingWork(threading.local):
+    configurations = 0
+    pairs = 0
+    single_queries = 0
+    batch_queries = 0
+
+
+_WORK = _CheckingWork()
+
+
+def checking_work_s() -> float:
+    """The collision checking this thread has done so far (all checkers together), in CPU seconds of the reference
+    machine (:data:`WORK_S_PER_CONFIGURATION` and the like): a count, not a clock, so the same checks count the same
+    on any machine, busy or idle. A search limited by it (``plan_joint_path(..., work=checking_work_s)``) ends at
+    the same point everywhere."""
+    work = _WORK
+    return (work.configurations * WORK_S_PER_CONFIGURATION + work.pairs * WORK_S_PER_PAIR
+            + work.single_queries * WORK_S_PER_SINGLE_QUERY + work.batch_queries * WORK_S_PER_BATCH_QUERY)
 
 
 @dataclass(frozen=True)
@@ -358,6 +388,7 @@ class RobotCollisionChecker:
     def _boxes(self, qs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """For configurations ``qs`` (N, 7): anchors (N, 8, 4, 4), world_from_body (N, M, 4, 4), the bodies'
         oriented-box centres (N, M, 3) and their world-axis-aligned boxes, low and high (N, M, 3), metres."""
+        _WORK.configurations += len(qs)
         anchors = _anchors(self._compiled, self.world_from_base, qs)
         world_from_body = anchors[:, self._body_anchor] @ self._anchor_from_body
         rotation = world_from_body[..., :3, :3]
@@ -465,7 +496,9 @@ class RobotCollisionChecker:
         other_is_link) of the first collision, or None."""
         placed = np.zeros(len(self._body_objects), dtype=bool)
         objects = self._body_objects
+        work = _WORK
         for rank, body, other in pairs:
+            work.pairs += 1
             if not placed[body]:
                 objects[body].setTransform(_fcl_transform(world_from_body[body]))
                 placed[body] = True
@@ -496,6 +529,7 @@ class RobotCollisionChecker:
         q = np.ascontiguousarray(q, dtype=np.float64)
         if q.shape != (7,):
             raise ValueError(f"q must hold the 7 arm joint values (radians), got shape {q.shape}")
+        _WORK.single_queries += 1
         self._poses(q)
         world_from_body, centre, low, high = self._boxes_now
         _, rank, body, other = self._candidates(world_from_body, centre, low, high, ignore, held_ignore,
@@ -513,6 +547,7 @@ class RobotCollisionChecker:
         neighbours it is planned to touch at its target, which the arm and fingers must still clear);
         ``hand_ignore``: obstacles skipped by the hand, the fingers and the held part, not by the arm's links (the
         part to be picked and its support, which the grasp planner checked the hand against)."""
+        _WORK.batch_queries += 1
         qs = np.ascontiguousarray(qs, dtype=np.float64).reshape(-1, 7)
         ignore = frozenset(ignore)
         held_ignore = frozenset(held_ignore)

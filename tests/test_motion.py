@@ -108,6 +108,12 @@ def test_a_query_with_no_path_is_searched_again_before_it_fails():
         assert info.value.kind == "timeout" and str(info.value).endswith(words)
         assert time.perf_counter() - started >= 0.2 * searches  # each search ran out its time
 
+    checks = iter(range(10**9))  # a count of the work: each termination check counts 1 ms
+    with pytest.raises(MotionPlanningError, match=r"found no path within 0.2 s of searching, counted in collision "
+                                                  r"checks$"):
+        plan_joint_path(lambda q: True, start, goal, LOWER, UPPER, MotionSettings(time_limit_s=0.2, searches=1),
+                        segment_valid=segment_valid, work=lambda: next(checks) * 1e-3)
+
     def slow_segment_valid(q_from, q_to):  # the search's thread waits: it does not work
         time.sleep(0.01)
         return segment_valid(q_from, q_to)
@@ -156,3 +162,49 @@ def test_a_search_gets_as_far_on_a_busy_machine():
     assert busy.startswith("RRTConnect found no path within 0.5 s by the clock")
 
 
+
+
+_COUNTED_QUERY = """
+import sys, time, numpy as np
+sys.path.insert(0, "tests")
+from test_motion import LOWER, UPPER, world_with_wall
+from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path
+from planning.robot_collision import checking_work_s
+burn_s, counted = float(sys.argv[1]), sys.argv[2] == "counted"
+checker = world_with_wall()
+start, goal = np.array([0.0, -0.6, 0.0, -2.2, 0.0, 1.6, 0.785]), np.array([0.0, -0.6, 0.0, -2.2, 0.0, 1.6, 0.785])
+start[0], goal[0] = -0.5, 0.5
+
+def valid(q):  # the real check, and a block of joint space between start and goal; then a slower machine
+    free = checker.is_valid(q) and not (abs(q[0]) < 0.2 and abs(q[1] + 0.6) < 1.5 and abs(q[2]) < 1.5)
+    started = time.thread_time()
+    while time.thread_time() - started < burn_s:
+        pass
+    return free
+
+settings = MotionSettings(time_limit_s=2.0, wall_limit_s=None, searches=1, simplify=False)
+try:
+    path = plan_joint_path(valid, start, goal, LOWER, UPPER, settings, work=checking_work_s if counted else None)
+    print(np.round(path, 9).tolist())
+except MotionPlanningError as exc:
+    print(exc)
+"""
+
+
+def test_a_search_limited_by_collision_checks_plans_the_same_path_on_a_slower_machine():
+    """A query of about 2,200 checks of the real checker, which :func:`checking_work_s` counts as 0.9 s (about
+    0.5 s of CPU time here). Each check made 1 ms slower (a slower or shared core: the thread's own CPU time grows
+    to about 2.8 s), a search limited to 2 s of CPU time runs out; limited to 2 s of collision checking as counted,
+    it plans the idle machine's path exactly (OMPL seeded alike): a cell program does not depend on the machine
+    that planned it, or on what else ran there."""
+    import subprocess
+    import sys
+
+    def run(burn_s: str, limit: str) -> str:
+        return subprocess.run([sys.executable, "-c", _COUNTED_QUERY, burn_s, limit], capture_output=True, text=True,
+                              check=True).stdout
+
+    idle = run("0", "counted")
+    assert idle.startswith("[[-0.5") and run("0.001", "counted") == idle
+    assert run("0", "cpu") == idle
+    assert run("0.001", "cpu").startswith("RRTConnect found no path within 2.0 s of searching\n")
