@@ -83,7 +83,8 @@ def main() -> None:
     parser.add_argument("--set", nargs=2, metavar=("CATEGORY", "LEVEL"), default=["cabinet", "3"],
                         help="category (chair, table, cabinet) and level (3, mixed)")
     parser.add_argument("--first", type=int, default=0, help="index of the first test object")
-    parser.add_argument("--count", type=int, default=8, help="objects to run")
+    parser.add_argument("--count", type=int, help="objects to run (default: 8 of --set; every folder of --furniture "
+                                                  "from --first on, or every one named with --only)")
     parser.add_argument("--out", type=Path, default=Path("out/picture_runs"))
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds per run")
     parser.add_argument("--furniture", type=Path, help="run these assembly folders instead (e.g. ../shared/furniture, "
@@ -103,13 +104,15 @@ def main() -> None:
             if missing:
                 raise SystemExit(f"--only: no assembly folder {', '.join(missing)} in {args.furniture}")
             folders = [f for f in folders if f.name in args.only]
-        objects = [(folder.name, folder) for folder in folders[args.first:args.first + args.count]]
+        count = len(folders) if args.count is None else args.count
+        objects = [(folder.name, folder) for folder in folders[args.first:args.first + count]]
         if not objects:
             raise SystemExit(f"--furniture {args.furniture}: no assembly folders at --first {args.first}")
         described = (f"{args.furniture.name}, " + (f"{len(objects)} folders named with --only" if args.only else
                      f"folders {args.first}-{args.first + len(objects) - 1} in name order"))
     else:
         category, level = args.set
+        args.count = 8 if args.count is None else args.count
         objects = [held_out_object(category, level, index, args.out)
                    for index in range(args.first, args.first + args.count)]
         described = f"{category} {level}, test objects {args.first}-{args.first + args.count - 1}"
