@@ -232,13 +232,14 @@ class Pipeline:
         """Plan ``build`` (the target as the jig holds it: ``build_from_target`` is the target's assembly frame in
         the build's) or raise :class:`StageFailed` (exit 3)."""
         from cell.plan import DEFAULT_TIME_BUDGET_S, PlanningFailed, plan_cell
+        from cell.task import LONGEST_WAY_IN_M
         from planning.motion import MotionSettings
         from planning.sequence import failure_summary, plan_assembly_sequence
 
         upside_down = not np.allclose(build_from_target.rotation, np.eye(3))
         how = "upside down, " if upside_down else ""
         with self.console.stage("sequence", f"{how}assembly by disassembly"):
-            sequence = plan_assembly_sequence(build, seed=self.args.seed)
+            sequence = plan_assembly_sequence(build, seed=self.args.seed, max_overlap_exit_m=LONGEST_WAY_IN_M)
         if not sequence.success:
             self.report.setdefault("sequence_failures", []).append(
                 {"upside_down": upside_down, "reason": sequence.reason, "blocking": dict(sequence.blocking),

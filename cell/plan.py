@@ -26,6 +26,7 @@ from cell.task import (
     INSERTION_STEP_M,
     JOINT_LIMIT_MARGIN_RAD,
     LIFT_M,
+    LONGEST_WAY_IN_M,
     RETREAT_KIT_CLEARANCE_M,
     CellWorld,
     PartTask,
@@ -766,7 +767,8 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
                 if not blockers:
                     raise _kitting_failed(exc, started, context, beyond) from exc
                 after[exc.part] = after.get(exc.part, frozenset()) | blockers
-                again = plan_assembly_sequence(assembly, seed, grasp_check=_PlacedBefore(hand_check, after))
+                again = plan_assembly_sequence(assembly, seed, grasp_check=_PlacedBefore(hand_check, after),
+                                               max_overlap_exit_m=LONGEST_WAY_IN_M)
                 if not again.success:
                     raise _kitting_failed(exc, started, f"the arm meets {', '.join(sorted(blockers))} there, and "
                                           f"no order places it before them: {again.reason}", beyond) from exc

@@ -69,6 +69,9 @@ from planning.timing import MAX_DEVIATION_RAD, JointLimits, time_path
 LIFT_M = 0.10  # straight lift after grasping, world +z
 INSERTION_M = 0.08  # straight insertion along the insertion direction into the target
 LEAD_IN_STEPS_M = (0.04, 0.08, 0.16, 0.24)  # farther back it may start, where its pre-place lies between neighbours
+# the longest straight way in, lead-in and insertion: a part that stays inside a neighbour it overlaps at its target
+# for longer along its insertion cannot be placed, and the sequence stage gives it another direction
+LONGEST_WAY_IN_M = INSERTION_M + LEAD_IN_STEPS_M[-1]
 # and along the insertion, whose joint path between IK points sags off the straight line by the square of their
 # spacing: at 2 cm the TCP strayed 0.3 mm, more than a part fitted between two neighbours has to spare (a quarter
 # of a millimetre each side in the simulator), and a drawer's back was pushed into a side at 430 N

@@ -95,8 +95,9 @@ class SequenceResult:
 
 class _Planner:
     def __init__(self, parts: list[ConvexPart], poses: list[Pose], grasp_check: GraspCheck | None,
-                 floor_z_m: float, time_budget_s: float) -> None:
+                 floor_z_m: float, time_budget_s: float, max_overlap_exit_m: float | None = None) -> None:
         self.parts = {p.name: p for p in parts}
+        self.max_overlap_exit_m = max_overlap_exit_m
         self.poses = {p.name: pose for p, pose in zip(parts, poses)}
         self.names = [p.name for p in parts]
         self.contacts = contact_graph(parts, poses, floor_z_m)
@@ -152,18 +153,24 @@ class _Planner:
                                     cutoff_m=0.0).distance_m < -PENETRATION_TOLERANCE_M)
         return self._overlap_partners[name]
 
+    def overlap_exit(self, name: str, k: int, present: frozenset) -> tuple[float, str | None]:
+        """How far ``name`` moves along its removal direction ``k`` until it lies beyond every part of ``present``
+        it overlaps at the targets, and the part it leaves last ((0, None) when it overlaps none)."""
+        direction = self.directions[name][k]
+        return max([(travel_to_clear_m(self.world_vertices[name], self.world_vertices[other], direction), other)
+                    for other in self.overlap_partners(name) if other in present] + [(0.0, None)])
+
     def overlap_exit_m(self, name: str, k: int, present: frozenset) -> float:
         """How far ``name`` moves along its removal direction ``k`` until it lies beyond every part of ``present``
         it overlaps at the targets (0 when it overlaps none)."""
-        direction = self.directions[name][k]
-        return max([travel_to_clear_m(self.world_vertices[name], self.world_vertices[other], direction)
-                    for other in self.overlap_partners(name) if other in present] + [0.0])
+        return self.overlap_exit(name, k, present)[0]
 
     def free_directions(self, name: str, present: frozenset,
                         limit: int) -> tuple[list[int], dict[int, list[str]]]:
         """Up to ``limit`` removal directions free of the parts in ``present`` (in order of preference, those
-        that stay inside a part it overlaps for more than :data:`OVERLAP_EXIT_M` last), and for each direction
-        tried and found blocked, the first blocker found (nearest parts are tried first)."""
+        that stay inside a part it overlaps for more than :data:`OVERLAP_EXIT_M` last; those that stay inside it
+        for more than ``max_overlap_exit_m`` are blocked by it), and for each direction tried and found blocked, the
+        first blocker found (nearest parts are tried first)."""
         free: list[int] = []
         long_exit: list[int] = []
         blockers: dict[int, list[str]] = {}
@@ -176,7 +183,11 @@ class _Planner:
             if hit is not None:
                 blockers[k] = [hit]
                 continue
-            if self.overlap_exit_m(name, k, present) > OVERLAP_EXIT_M:
+            exit_m, inside = self.overlap_exit(name, k, present)
+            if self.max_overlap_exit_m is not None and exit_m > self.max_overlap_exit_m:
+                blockers[k] = [inside]
+                continue
+            if exit_m > OVERLAP_EXIT_M:
                 long_exit.append(k)
                 continue
             free.append(k)
@@ -261,15 +272,19 @@ def _direction_label(direction: np.ndarray) -> str:
 
 
 def plan_sequence(parts: list[ConvexPart], poses: list[Pose], grasp_check: GraspCheck | None = None,
-                  floor_z_m: float = 0.0, time_budget_s: float = 10.0) -> SequenceResult:
+                  floor_z_m: float = 0.0, time_budget_s: float = 10.0,
+                  max_overlap_exit_m: float | None = None) -> SequenceResult:
     """Plan an assembly order for parts (convex pieces, part frames) at target poses ``assembly_from_part``.
 
     ``grasp_check(part, parts_present, insertion_direction)`` returns a grasp or None; without it grasps are
     not checked (``SequenceStep.grasp`` is then True). The search gives up after ``time_budget_s`` seconds of its own
     work (CPU time of the calling thread: the same search on a busy machine as on an idle one).
+    ``max_overlap_exit_m``: a part that overlaps a neighbour at the targets may not go in along a direction on which
+    it stays inside that neighbour for more than this (metres; None: no limit), e.g. the robot's straight
+    insertion plus its longest lead-in, which must start where the part is clear of it.
     """
     start = time.perf_counter()
-    planner = _Planner(parts, poses, grasp_check, floor_z_m, time_budget_s)
+    planner = _Planner(parts, poses, grasp_check, floor_z_m, time_budget_s, max_overlap_exit_m)
     falling = ungrounded(planner.contacts, set(planner.names))
     if falling:
         return SequenceResult([], False, _falling_reason(planner.contacts, falling), {

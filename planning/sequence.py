@@ -104,13 +104,15 @@ class GraspChecker:
 
 
 def plan_assembly_sequence(assembly: Assembly, seed: int = 0, check_grasps: bool = True,
-                           time_budget_s: float = 10.0, grasp_check=None) -> SequenceResult:
+                           time_budget_s: float = 10.0, grasp_check=None,
+                           max_overlap_exit_m: float | None = None) -> SequenceResult:
     """Assembly order of ``assembly`` at its poses (metres, +z up, floor at z = 0). ``grasp_check``: replaces the
-    hand's check at the target (:class:`GraspChecker`), e.g. one that asks the arm too (``cell.plan``)."""
+    hand's check at the target (:class:`GraspChecker`), e.g. one that asks the arm too (``cell.plan``).
+    ``max_overlap_exit_m``: as in :func:`planning.disassembly.plan_sequence`."""
     parts = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
     poses = [p.assembly_from_part for p in assembly.parts]
     checker = (grasp_check or GraspChecker(assembly, seed)) if check_grasps else None
-    result = plan_sequence(parts, poses, checker, time_budget_s=time_budget_s)
+    result = plan_sequence(parts, poses, checker, time_budget_s=time_budget_s, max_overlap_exit_m=max_overlap_exit_m)
     if not result.success and isinstance(checker, GraspChecker):
         graspless = [n for n, c in checker.candidates.items() if not c]  # computes the ones not asked for yet
         if graspless:

@@ -216,6 +216,29 @@ def test_a_back_panel_drawn_into_its_side_goes_in_from_the_side():
         np.testing.assert_allclose(result.steps[2].insertion_direction, direction, atol=1e-9)
 
 
+def test_a_part_that_would_stay_inside_its_neighbour_beyond_the_longest_way_in_goes_in_before_it():
+    """A 45 cm back panel drawn 7 mm into a 40 cm side over its whole height, boxed in by a stop at its other end and
+    a rear board behind it. With the side in place it can go in only from above, inside the side for 40 cm: no
+    straight lead-in and insertion of the robot (32 cm in the cell) starts clear of it (cabinet_bjorken_0203 from
+    its picture failed so in motion, at every placement of the jig). With that limit the back goes in from above
+    before the side, and the side slides on along -x, inside the back for 7 mm."""
+    cabinet = Assembly("groove", [
+        box_part("bottom", (0.3, 0.2, 0.02), [0, 0, 0.01]),
+        box_part("back", (0.307, 0.01, 0.45), [0.0035, -0.105, 0.225]),  # x -0.15..0.157, y -0.11..-0.10
+        box_part("side", (0.014, 0.21, 0.4), [0.157, -0.005, 0.2]),  # x 0.15..0.164, y -0.11..0.1
+        box_part("stop", (0.05, 0.01, 0.2), [-0.175, -0.105, 0.1]),  # at the back's -x end
+        box_part("rear", (0.357, 0.05, 0.2), [-0.0215, -0.135, 0.1]),  # behind the back and the stop
+    ])
+    unlimited = plan_sequence(*convex_parts(cabinet), time_budget_s=5.0)
+    assert unlimited.success and unlimited.order[-2:] == ["side", "back"]
+    np.testing.assert_allclose(unlimited.steps[-1].insertion_direction, [0, 0, -1], atol=1e-9)
+    limited = plan_sequence(*convex_parts(cabinet), time_budget_s=5.0, max_overlap_exit_m=0.32)
+    assert limited.success, limited.reason
+    assert limited.order.index("back") < limited.order.index("side")
+    np.testing.assert_allclose(limited.steps[limited.order.index("back")].insertion_direction, [0, 0, -1], atol=1e-9)
+    np.testing.assert_allclose(limited.steps[limited.order.index("side")].insertion_direction, [-1, 0, 0], atol=1e-9)
+
+
 def test_peg_in_closed_frame_only_goes_in_from_above():
     assembly = peg_in_frame()
     parts, poses = convex_parts(assembly)
