@@ -160,11 +160,6 @@ class _Planner:
         return max([(travel_to_clear_m(self.world_vertices[name], self.world_vertices[other], direction), other)
                     for other in self.overlap_partners(name) if other in present] + [(0.0, None)])
 
-    def overlap_exit_m(self, name: str, k: int, present: frozenset) -> float:
-        """How far ``name`` moves along its removal direction ``k`` until it lies beyond every part of ``present``
-        it overlaps at the targets (0 when it overlaps none)."""
-        return self.overlap_exit(name, k, present)[0]
-
     def free_directions(self, name: str, present: frozenset,
                         limit: int) -> tuple[list[int], dict[int, list[str]]]:
         """Up to ``limit`` removal directions free of the parts in ``present`` (in order of preference, those
