@@ -27,6 +27,7 @@ from cell.task import (
     JOINT_LIMIT_MARGIN_RAD,
     LIFT_M,
     LONGEST_WAY_IN_M,
+    PICK_STAGES,
     RETREAT_KIT_CLEARANCE_M,
     CellWorld,
     PartTask,
@@ -506,6 +507,29 @@ DEFAULT_TIME_BUDGET_S = 300.0
 REORDERS = 3  # a part the arm cannot place among the parts before it moves ahead of them, at most this often
 
 
+def grasp_options_after_failure(options: list[tuple[Grasp, tuple]], stage: str) -> list[tuple[Grasp, tuple]]:
+    """The grasp options left for a part whose motions failed at ``stage`` with the first of ``options``
+    (kitting's (grasp, arm configurations at the pick and at the target) pairs, best first): the others, less
+    those that differ from it only in how wide the hand opens at the pick where ``stage`` is not one of
+    :data:`cell.task.PICK_STAGES`. From the grasp on they would plan the same motions again: kitting keeps such
+    variants of one grasp for a board that may lean between its chocks, and bookcase_hensvik_0565's ``part_06``
+    failed its carry to the target with each of three, 25 s apiece, before the jig was turned."""
+    failed, others = options[0], list(options[1:])
+    if stage in PICK_STAGES:
+        return others
+    return [option for option in others if not _same_but_pick_opening(option, failed)]
+
+
+def _same_but_pick_opening(a: tuple[Grasp, tuple], b: tuple[Grasp, tuple]) -> bool:
+    """Whether two grasp options (grasp, arm configurations) hold the part alike, reach it with the same arm
+    configurations at the pick and at the target, and open alike at the target (their pick openings aside)."""
+    (grasp_a, reach_a), (grasp_b, reach_b) = a, b
+    return (grasp_pose_key(grasp_a) == grasp_pose_key(grasp_b)
+            and abs(grasp_a.width_m - grasp_b.width_m) < 1e-9 and abs(grasp_a.opening_m - grasp_b.opening_m) < 1e-9
+            and np.allclose(reach_a[0][0], reach_b[0][0], rtol=0.0, atol=1e-9)
+            and np.allclose(reach_a[1][0], reach_b[1][0], rtol=0.0, atol=1e-9))
+
+
 def jig_placed(scene: Scene, turn_deg: float, slide_m: float = 0.0) -> Scene:
     """``scene`` with its jig (the assembly frame) turned by ``turn_deg`` about the world's +z axis and slid
     ``slide_m`` (m) horizontally toward the robot's base."""
@@ -805,17 +829,20 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
             except TaskPlanningError as exc:
                 timing_seconds += world.timing_seconds
                 failed = options.get(exc.part, [])
+                left = grasp_options_after_failure(failed, exc.stage) if failed else []
                 out_of_time = exc.kind == "timeout" and exc.stage == "planning"  # the budget, not one search
-                if (attempt == MOTION_RETRIES or len(failed) < 2 or out_of_time
-                        or time.thread_time() > deadline):
+                if attempt == MOTION_RETRIES or not left or out_of_time or time.thread_time() > deadline:
                     error = PlanningFailed("motion", str(exc), exc.part)
                     error.seconds = {**seconds, "motion": time.perf_counter() - started - timing_seconds,
                                      "timing": timing_seconds}
                     raise error from exc
-                failed.pop(0)  # the next grasp for this part
                 resume = exc.checkpoint
                 if on_note is not None:
-                    on_note(f"{exc}\nplanning the motions again from {exc.part}, with another grasp of it")
+                    same = _same_but_pick_opening(left[0], failed[0])
+                    how = (f"its grasp opened {left[0][0].opening_at_pick_m * 1000:.0f} mm at the pick (was "
+                           f"{failed[0][0].opening_at_pick_m * 1000:.0f} mm)" if same else "another grasp of it")
+                    on_note(f"{exc}\nplanning the motions again from {exc.part}, with {how}")
+                options[exc.part] = left
         slots = [dataclasses.replace(s, grasp=options[s.part][0][0], reach=options[s.part][0][1],
                                      alternatives=tuple(options[s.part][1:])) for s in slots]
         seconds["timing"] = timing_seconds
@@ -824,5 +851,5 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
     return CellPlan(world_from_assembly, static, slots, tasks, task_plan, limits, seconds, sequence=sequence)
 
 
-__all__ = ["CellPlan", "PlanningFailed", "StaticObstacle", "grasps_clear_at_target", "out_of_reach", "plan_cell",
-           "part_masses_kg", "part_payload", "too_heavy"]
+__all__ = ["CellPlan", "PlanningFailed", "StaticObstacle", "grasp_options_after_failure", "grasps_clear_at_target",
+           "out_of_reach", "part_masses_kg", "part_payload", "plan_cell", "too_heavy"]

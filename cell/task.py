@@ -88,6 +88,9 @@ TRANSIT_CLEARANCE_M = 0.003  # ... and free-space moves keep this from every obs
 # farther back along its axis
 FARTHER_APPROACH_M = 0.08
 NEAR_END_RAD = 0.15  # ... except this close (joint-space distance) to an end that lies closer than that
+# the stages of a part's motions with the hand open for its pick (as wide as the pick's opening, which kitting may
+# widen where a board standing between chocks may lean); every later stage is planned the same whatever that opening
+PICK_STAGES = frozenset({"move to the pick", "grasp at the pick", "approach to the pick", "approach"})
 # the retreat's links and fingers keep this from the parts lying in the kit (the exact check keeps LINK_CLEARANCE_M,
 # 1.5 mm, within which PyBullet's link hulls, padded about 1.1 mm, touch a part that settled a little on its pedestal)
 RETREAT_KIT_CLEARANCE_M = 0.0025
