@@ -808,7 +808,8 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
         convex_static = {o.name: (ConvexPart.from_mesh(o.name, o.mesh), o.world_from_obstacle) for o in static}
         convex_parts = {p.name: ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts}
         # a part whose motions fail with its grasp is tried with its kitting alternatives (each valid at its
-        # pick and target), at most MOTION_RETRIES times in all; the parts before it are kept as planned
+        # pick and target) that would not plan the same motions again (grasp_options_after_failure), at most
+        # MOTION_RETRIES times in all; the parts before it are kept as planned
         options = {s.part: [(s.grasp, s.reach)] + list(s.alternatives) for s in slots}
         timing_seconds = 0.0
         resume = None

@@ -84,6 +84,10 @@ IK_ATTEMPTS = 6  # IK solutions tried (each with restarts) for a collision-free 
 JOINT_LIMIT_MARGIN_RAD = 0.01  # configurations keep this from the joint limits (timed motions must not touch them)
 CARRY_CLEARANCE_M = 0.002  # the carried part is grown by this much on its way to the target ...
 TRANSIT_CLEARANCE_M = 0.003  # ... and free-space moves keep this from every obstacle
+# a carry that may pass the part's neighbours closer than that keeps the part, as it is (not pulled in by the
+# HELD_MARGIN_M it may have near the carry's ends), this far from them away from its ends: table_6's shelf, checked
+# pulled in, could pass up to 2 mm into a leg in mid-carry, and met it in the simulator
+PASSING_CLEARANCE_M = 0.001
 # where no path reaches the pre-grasp (a pocket among the kit's parts and pedestals), the approach starts this much
 # farther back along its axis
 FARTHER_APPROACH_M = 0.08
@@ -150,8 +154,9 @@ class PlannedTask:
     :data:`TRANSIT_CLEARANCE_M` from everything; where an end of the carry lies closer than that to something, the
     part as it is (or pulled in by :data:`HELD_MARGIN_M`) and :data:`TRANSIT_CLEARANCE_M` from everything except
     within :data:`NEAR_END_RAD` of the ends (``clearance except near its ends``), else from everything but the
-    parts it touches at its target (``among neighbours``); ``no clearance``, the part as it is, from everything
-    (where those searches failed)."""
+    parts it touches at its target, which the part as it is passes :data:`PASSING_CLEARANCE_M` off away from the
+    ends (``among neighbours``); ``no clearance``, the part as it is (or pulled in), from everything (where those
+    searches failed)."""
 
     part: str
     grasp_q: np.ndarray
@@ -205,6 +210,8 @@ class CellWorld:
         # geometry is a little larger than the planning model); moves into contact use the exact one
         self.transit_checker = RobotCollisionChecker(world_from_base.matrix(), {})
         # the retreat keeps RETREAT_KIT_CLEARANCE_M from the parts in the kit (see kit_validity)
+        # the held part as it is, grown by PASSING_CLEARANCE_M, whatever its margin (see _among_neighbours_validity)
+        self.passing_checker = RobotCollisionChecker(world_from_base.matrix(), {})
         self.kit_checker = RobotCollisionChecker(world_from_base.matrix(), {},
                                                  link_clearance_m=RETREAT_KIT_CLEARANCE_M,
                                                  finger_clearance_m=RETREAT_KIT_CLEARANCE_M)
@@ -219,6 +226,7 @@ class CellWorld:
         obstacles = {name: (part, pose.matrix()) for name, (part, pose) in self.static.items()}
         obstacles.update({name: (self.parts[name], pose.matrix()) for name, pose in self.part_poses.items()})
         self.checker.set_obstacles(obstacles)
+        self.passing_checker.set_obstacles(obstacles)
         self.transit_checker.set_obstacles({name: (self._grown(name, part), pose)
                                             for name, (part, pose) in obstacles.items()})
 
@@ -227,6 +235,17 @@ class CellWorld:
         if key not in self._grown_cache:
             self._grown_cache[key] = shrunk(part, -TRANSIT_CLEARANCE_M)
         return self._grown_cache[key]
+
+    def _passing(self, part: str) -> ConvexPart:
+        key = ("passing", part)
+        if key not in self._grown_cache:
+            self._grown_cache[key] = shrunk(self.parts[part], -PASSING_CLEARANCE_M)
+        return self._grown_cache[key]
+
+    def passing_validity(self):
+        """``q -> bool``: the held part as it is, grown by :data:`PASSING_CLEARANCE_M`, and the robot clear of
+        everything (the held weight is not checked; valid until the next :meth:`hold`)."""
+        return _Validity(self.passing_checker, frozenset())
 
     def validity(self, ignore: frozenset[str] = frozenset(), transit: bool = False,
                  held_ignore: frozenset[str] = frozenset(), hand_ignore: frozenset[str] = frozenset()):
@@ -255,6 +274,10 @@ class CellWorld:
             else:
                 held = shrunk(self.parts[part], margin_m)
                 checker.hold(held, grasp.part_from_tcp.inverse().matrix(), opening_m=opening_m)
+        if part is None:
+            self.passing_checker.hold(None, opening_m=opening_m)
+        else:
+            self.passing_checker.hold(self._passing(part), grasp.part_from_tcp.inverse().matrix(), opening_m=opening_m)
         self._load = None
         if part is not None and part in self.payloads:
             self._load = JointTorques(self.checker, self.payloads[part], grasp.part_from_tcp.inverse())
@@ -599,11 +622,15 @@ class _AllValid:
 def _among_neighbours_validity(world: CellWorld, task: PartTask, exact, ends: tuple[np.ndarray, ...],
                                off_neighbours: bool = False):
     """Validity for a carry whose ends lie closer to the part's neighbours than the carry clearance: ``exact``
-    (the part held as it is) everywhere, and the transit clearance from everything but the parts ``task``'s part
-    touches at its target (``off_neighbours``: from those too), except within :data:`NEAR_END_RAD` of the ``ends``
-    (see :class:`_ClearExceptNearEnds`; the hold must stay as it is while it is used)."""
+    (the part held as it is, or pulled in by :data:`HELD_MARGIN_M`) everywhere, and the transit clearance from
+    everything but the parts ``task``'s part touches at its target (``off_neighbours``: from those too), except
+    within :data:`NEAR_END_RAD` of the ``ends`` (see :class:`_ClearExceptNearEnds`; the hold must stay as it is
+    while it is used). Away from the ends the part, as it is, keeps :data:`PASSING_CLEARANCE_M` from its neighbours
+    too."""
     clear = world.validity(transit=True, ignore=frozenset() if off_neighbours else frozenset(task.touches_at_target))
-    return _ClearExceptNearEnds(_AllValid(clear, exact), exact, ends)
+    if off_neighbours:
+        return _ClearExceptNearEnds(_AllValid(clear, exact), exact, ends)
+    return _ClearExceptNearEnds(_AllValid(clear, exact, world.passing_validity()), exact, ends)
 
 
 def _retreat_validity(world: CellWorld, placed: str, in_kit: frozenset[str]):

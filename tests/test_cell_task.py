@@ -14,12 +14,14 @@ from cell.task import (
     CARRY_CLEARANCE_M,
     DENSE_CHECK_RAD,
     FARTHER_APPROACH_M,
+    HELD_MARGIN_M,
     INSERTION_M,
     INSERTION_SPEED_M_S,
     JOINT_LIMIT_MARGIN_RAD,
     LEAD_IN_STEPS_M,
     NEAR_END_RAD,
     PANDA_LIMITS,
+    PASSING_CLEARANCE_M,
     RETREAT_KIT_CLEARANCE_M,
     SLIDE_CLEARANCE_M,
     TRANSIT_CLEARANCE_M,
@@ -323,6 +325,40 @@ def test_a_carry_among_neighbours_keeps_clear_of_everything_else(panda):
     assert np.linalg.norm(pre - by_block) > NEAR_END_RAD
     assert not _among_neighbours_validity(world, task, exact, (far_end, by_block), off_neighbours=True)(pre)
     assert _among_neighbours_validity(world, task, exact, (far_end, pre), off_neighbours=True)(pre)
+
+
+def test_a_carry_among_neighbours_passes_them_with_the_part_as_it_is_away_from_its_ends(panda):
+    """A part carried among its neighbours may be checked pulled in by HELD_MARGIN_M, so that it can slide along
+    the faces it touches at the carry's ends; in mid-carry it must still keep PASSING_CLEARANCE_M from them as it
+    is (table_6's shelf, checked pulled in, passed 2 mm into a leg in mid-carry and met it in the simulator)."""
+    plank = trimesh.creation.box((0.008, 0.4, 0.02))
+    post = trimesh.creation.box((0.01, 0.03, 0.3))
+    grasp = Grasp(Pose.identity(), width_m=0.008, opening_m=0.02, score=1.0, centroid_score=1.0, contact_score=1.0)
+    down = [0.0, 1.0, 0.0, 0.0]
+    start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
+    far_end = np.array([0.8, -0.5, 0.3, -1.8, 0.2, 1.6, 0.5])
+
+    def carried_past(post_face_off_plank_m: float):
+        """(validity among neighbours with far ends, the same with the configuration an end, the configuration)
+        with the post's face this far off the plank's -x face (negative: into it) at the TCP [0.5, 0, 0.5]."""
+        post_x = 0.5 - 0.004 - post_face_off_plank_m - 0.005
+        world = CellWorld(panda, Pose.identity(), {}, {"plank": ConvexPart.from_mesh("plank", plank),
+                                                        "post": ConvexPart.from_mesh("post", post)},
+                          np.random.default_rng(0))
+        world.set_part_poses({"post": Pose([post_x, 0.17, 0.5], [1, 0, 0, 0])})
+        task = PartTask("plank", Pose([0.3, 0.3, 0.1], [1, 0, 0, 0]), Pose([0.5, 0.0, 0.2], down), grasp, DOWN,
+                        ("post",), "pedestal")
+        world.hold("plank", grasp, grasp.width_m, margin_m=HELD_MARGIN_M)
+        exact = world.validity()
+        q = world.solve_ik(Pose([0.5, 0.0, 0.5], down), start, exact, "plank", "test")
+        return (_among_neighbours_validity(world, task, exact, (far_end, start)),
+                _among_neighbours_validity(world, task, exact, (far_end, q)), q)
+
+    valid, valid_as_end, q = carried_past(-0.001)  # 1 mm into the plank as it is, 1 mm off it pulled in
+    assert not valid(q) and valid.first_invalid(q[None]) == 0
+    assert valid_as_end(q)  # near an end, the exact check with the part pulled in
+    valid, _, q = carried_past(PASSING_CLEARANCE_M + 0.0005)
+    assert valid(q)
 
 
 def test_an_ik_hint_too_close_to_a_joint_limit_is_solved_again(panda):
