@@ -210,8 +210,12 @@ class CellWorld:
         # geometry is a little larger than the planning model); moves into contact use the exact one
         self.transit_checker = RobotCollisionChecker(world_from_base.matrix(), {})
         # the retreat keeps RETREAT_KIT_CLEARANCE_M from the parts in the kit (see kit_validity)
-        # the held part as it is, grown by PASSING_CLEARANCE_M, whatever its margin (see _among_neighbours_validity)
+        # the held part as it is, grown by PASSING_CLEARANCE_M, whatever its margin (see _among_neighbours_validity):
+        # seldom needed, so its world is brought up to date only when it is
         self.passing_checker = RobotCollisionChecker(world_from_base.matrix(), {})
+        self._obstacles: dict[str, tuple[ConvexPart, np.ndarray]] = {}
+        self._passing_obstacles: dict[str, tuple[ConvexPart, np.ndarray]] | None = None
+        self._held: tuple[str | None, Grasp | None, float] = (None, None, 0.0)  # part, grasp, opening
         self.kit_checker = RobotCollisionChecker(world_from_base.matrix(), {},
                                                  link_clearance_m=RETREAT_KIT_CLEARANCE_M,
                                                  finger_clearance_m=RETREAT_KIT_CLEARANCE_M)
@@ -226,7 +230,7 @@ class CellWorld:
         obstacles = {name: (part, pose.matrix()) for name, (part, pose) in self.static.items()}
         obstacles.update({name: (self.parts[name], pose.matrix()) for name, pose in self.part_poses.items()})
         self.checker.set_obstacles(obstacles)
-        self.passing_checker.set_obstacles(obstacles)
+        self._obstacles = obstacles
         self.transit_checker.set_obstacles({name: (self._grown(name, part), pose)
                                             for name, (part, pose) in obstacles.items()})
 
@@ -243,8 +247,17 @@ class CellWorld:
         return self._grown_cache[key]
 
     def passing_validity(self):
-        """``q -> bool``: the held part as it is, grown by :data:`PASSING_CLEARANCE_M`, and the robot clear of
-        everything (the held weight is not checked; valid until the next :meth:`hold`)."""
+        """``q -> bool``: the part in the hand (as :meth:`hold` put it there) as it is, grown by
+        :data:`PASSING_CLEARANCE_M`, and the robot clear of everything where it lies now; the held weight is not
+        checked. The world and the hold are taken as they are when this is called."""
+        if self._passing_obstacles is not self._obstacles:
+            self.passing_checker.set_obstacles(self._obstacles)
+            self._passing_obstacles = self._obstacles
+        part, grasp, opening_m = self._held
+        if part is None:
+            self.passing_checker.hold(None, opening_m=opening_m)
+        else:
+            self.passing_checker.hold(self._passing(part), grasp.part_from_tcp.inverse().matrix(), opening_m=opening_m)
         return _Validity(self.passing_checker, frozenset())
 
     def validity(self, ignore: frozenset[str] = frozenset(), transit: bool = False,
@@ -274,10 +287,7 @@ class CellWorld:
             else:
                 held = shrunk(self.parts[part], margin_m)
                 checker.hold(held, grasp.part_from_tcp.inverse().matrix(), opening_m=opening_m)
-        if part is None:
-            self.passing_checker.hold(None, opening_m=opening_m)
-        else:
-            self.passing_checker.hold(self._passing(part), grasp.part_from_tcp.inverse().matrix(), opening_m=opening_m)
+        self._held = (part, grasp, opening_m)
         self._load = None
         if part is not None and part in self.payloads:
             self._load = JointTorques(self.checker, self.payloads[part], grasp.part_from_tcp.inverse())
