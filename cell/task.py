@@ -209,13 +209,13 @@ class CellWorld:
         # free-space moves keep TRANSIT_CLEARANCE_M from every obstacle (the simulator's and a real robot's
         # geometry is a little larger than the planning model); moves into contact use the exact one
         self.transit_checker = RobotCollisionChecker(world_from_base.matrix(), {})
-        # the retreat keeps RETREAT_KIT_CLEARANCE_M from the parts in the kit (see kit_validity)
         # the held part as it is, grown by PASSING_CLEARANCE_M, whatever its margin (see _among_neighbours_validity):
         # seldom needed, so its world is brought up to date only when it is
         self.passing_checker = RobotCollisionChecker(world_from_base.matrix(), {})
         self._obstacles: dict[str, tuple[ConvexPart, np.ndarray]] = {}
         self._passing_obstacles: dict[str, tuple[ConvexPart, np.ndarray]] | None = None
         self._held: tuple[str | None, Grasp | None, float] = (None, None, 0.0)  # part, grasp, opening
+        # the retreat keeps RETREAT_KIT_CLEARANCE_M from the parts in the kit (see kit_validity)
         self.kit_checker = RobotCollisionChecker(world_from_base.matrix(), {},
                                                  link_clearance_m=RETREAT_KIT_CLEARANCE_M,
                                                  finger_clearance_m=RETREAT_KIT_CLEARANCE_M)
@@ -234,16 +234,10 @@ class CellWorld:
         self.transit_checker.set_obstacles({name: (self._grown(name, part), pose)
                                             for name, (part, pose) in obstacles.items()})
 
-    def _grown(self, name: str, part: ConvexPart) -> ConvexPart:
-        key = (name, id(part))
+    def _grown(self, name: str, part: ConvexPart, by_m: float = TRANSIT_CLEARANCE_M) -> ConvexPart:
+        key = (name, id(part), by_m)
         if key not in self._grown_cache:
-            self._grown_cache[key] = shrunk(part, -TRANSIT_CLEARANCE_M)
-        return self._grown_cache[key]
-
-    def _passing(self, part: str) -> ConvexPart:
-        key = ("passing", part)
-        if key not in self._grown_cache:
-            self._grown_cache[key] = shrunk(self.parts[part], -PASSING_CLEARANCE_M)
+            self._grown_cache[key] = shrunk(part, -by_m)
         return self._grown_cache[key]
 
     def passing_validity(self):
@@ -257,7 +251,8 @@ class CellWorld:
         if part is None:
             self.passing_checker.hold(None, opening_m=opening_m)
         else:
-            self.passing_checker.hold(self._passing(part), grasp.part_from_tcp.inverse().matrix(), opening_m=opening_m)
+            self.passing_checker.hold(self._grown(part, self.parts[part], PASSING_CLEARANCE_M),
+                                      grasp.part_from_tcp.inverse().matrix(), opening_m=opening_m)
         return _Validity(self.passing_checker, frozenset())
 
     def validity(self, ignore: frozenset[str] = frozenset(), transit: bool = False,
