@@ -12,9 +12,11 @@ the robot's points move and checks a whole edge in one vectorised batch), by tha
 
 from __future__ import annotations
 
+import hashlib
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,8 +25,10 @@ PLANNERS = ("RRTConnect", "RRT", "RRTstar", "PRM", "KPIECE1", "BKPIECE1", "LBKPI
 # planners that check edges only with the two-state checkMotion (the one a Python motion validator overrides); the
 # KPIECE family also asks for the last valid state of an edge, so it keeps OMPL's discrete validator
 _SEGMENT_VALIDATOR_PLANNERS = frozenset({"RRTConnect", "RRT", "RRTstar", "PRM", "BITstar"})
-_seed_lock = threading.Lock()
-_seeded: int | None = None
+# OMPL seeds every generator it makes (a planner's, its sampler's, its nearest-neighbour structure's, the
+# simplifier's) from one sequence per process. A query restarts that sequence from a seed of its own and holds it
+# until it ends, so that its path depends on the query alone, not on the searches made before it in the process.
+_sequence_lock = threading.RLock()
 
 
 class MotionPlanningError(RuntimeError):
@@ -51,7 +55,7 @@ class MotionSettings:
     # every 0.014 rad (up to a centimetre at the hand)
     check_resolution: float = 0.001
     simplify: bool = True  # shorten the path (see _simplify)
-    seed: int = 0
+    seed: int = 0  # with each query's start and goal, the seed of its searches (query_seed)
     # searches of time_limit_s each before a query fails, each growing new random trees: one search that runs out
     # of time through a narrow passage is no proof that there is no path
     searches: int = 2
@@ -66,13 +70,29 @@ def _ompl():
     return ob, og, ou
 
 
-def _seed_once(ou, seed: int) -> None:
-    """OMPL seeds its generators once per process, before the first is made; later seeds are ignored."""
-    global _seeded
-    with _seed_lock:
-        if _seeded is None:
-            ou.RNG.setSeed(max(1, int(seed)))
-            _seeded = seed
+def query_seed(seed: int, start_q: np.ndarray, goal_q: np.ndarray) -> int:
+    """The seed of OMPL's sequence for one query: from ``seed`` (:attr:`MotionSettings.seed`) and the query's start
+    and goal configurations (radians, to the last bit), in [1, 2**31 - 1], the same in every process."""
+    digest = hashlib.blake2b(digest_size=8)
+    digest.update(int(seed).to_bytes(8, "little", signed=True))
+    for q in (start_q, goal_q):
+        digest.update(np.ascontiguousarray(q, dtype="<f8").tobytes())
+    return 1 + int.from_bytes(digest.digest(), "little") % (2**31 - 1)
+
+
+@contextmanager
+def _seeded_sequence(ou, seed: int) -> Iterator[None]:
+    """OMPL's seed sequence restarted from ``seed`` and held by this thread until the block ends. (OMPL logs an
+    error when its sequence is restarted after use, since generators made before it are not affected; each query
+    makes its own, so that message is kept out of the log.)"""
+    with _sequence_lock:
+        level = ou.getLogLevel()
+        ou.setLogLevel(ou.LOG_NONE)
+        try:
+            ou.RNG.setSeed(seed)
+        finally:
+            ou.setLogLevel(level)
+        yield
 
 
 def first_invalid_on_line(is_valid: Callable[[np.ndarray], bool], q_from: np.ndarray, q_to: np.ndarray,
@@ -167,7 +187,8 @@ def plan_joint_path(is_valid: Callable[[np.ndarray], bool], start_q: np.ndarray,
     far on this thread, in seconds as a reference machine takes for it (e.g.
     :func:`planning.robot_collision.checking_work_s`); when given, each search ends after ``settings.time_limit_s``
     of it, so that the same query plans the same path on any machine however busy (the seeds alike), rather than
-    after as many CPU seconds."""
+    after as many CPU seconds. The searches are seeded from ``settings.seed`` and the query (:func:`query_seed`): the
+    same query in the same world plans the same path, whatever was planned before it in the process."""
     start_q, goal_q = np.asarray(start_q, dtype=np.float64), np.asarray(goal_q, dtype=np.float64)
     if settings.planner not in PLANNERS:
         raise MotionPlanningError("invalid_request", f"unknown planner {settings.planner!r}; choose one of {PLANNERS}")
@@ -183,7 +204,15 @@ def plan_joint_path(is_valid: Callable[[np.ndarray], bool], start_q: np.ndarray,
     if direct:
         return np.stack([start_q, goal_q])
     ob, og, ou = _ompl()
-    _seed_once(ou, settings.seed)
+    with _seeded_sequence(ou, query_seed(settings.seed, start_q, goal_q)):
+        return _search(ob, og, is_valid, start_q, goal_q, lower, upper, settings, segment_valid, work)
+
+
+def _search(ob, og, is_valid: Callable[[np.ndarray], bool], start_q: np.ndarray, goal_q: np.ndarray,
+            lower: np.ndarray, upper: np.ndarray, settings: MotionSettings,
+            segment_valid: Callable[[np.ndarray, np.ndarray], bool] | None,
+            work: Callable[[], float] | None) -> np.ndarray:
+    """:func:`plan_joint_path`'s OMPL search, once the query is known valid and its straight segment blocked."""
     dof = len(start_q)
     space = ob.RealVectorStateSpace(dof)
     bounds = ob.RealVectorBounds(dof)

@@ -8,7 +8,7 @@ import trimesh
 
 from cell.scene import load_scene
 from planning.collision import ConvexPart
-from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path, straight_line_valid
+from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path, query_seed, straight_line_valid
 from planning.robot_collision import RobotCollisionChecker
 
 LOWER = np.array([-2.9671, -1.8326, -2.9671, -3.1416, -2.9671, -0.0873, -2.9671])
@@ -72,6 +72,28 @@ def test_plans_around_a_wall_with_segment_checks():
     np.testing.assert_allclose(path[[0, -1]], [start, goal])
     for a, b in zip(path[:-1], path[1:]):  # an independent dense check: every 2 mrad per joint
         assert straight_line_valid(checker.is_valid, a, b, step_rad=0.002)
+
+
+def test_a_query_plans_the_same_path_whatever_was_planned_before_it():
+    """OMPL seeds its generators from one sequence per process; each query restarts it from a seed of its own
+    (the settings' seed and the query), so one part's path in a cell program does not change when a search
+    anywhere before it is added or dropped."""
+    checker = world_with_wall()
+    home = np.array(load_scene().robot.home_q)
+    start, goal = home.copy(), home.copy()
+    start[0], goal[0] = 0.8, -0.8
+    settings = MotionSettings(time_limit_s=20.0, simplify=False)  # the searched path, not a shortened one
+
+    def plan(q_from, q_to, plan_settings=settings):
+        return plan_joint_path(checker.is_valid, q_from, q_to, LOWER, UPPER, plan_settings,
+                               segment_valid=checker.segment_valid)
+
+    first = plan(start, goal)
+    plan(goal, start)  # another query in between, drawing from OMPL's sequence
+    np.testing.assert_array_equal(plan(start, goal), first)
+    other_seed = plan(start, goal, MotionSettings(time_limit_s=20.0, simplify=False, seed=1))
+    assert other_seed.shape != first.shape or not np.array_equal(other_seed, first)
+    assert query_seed(0, start, goal) != query_seed(0, goal, start) != query_seed(1, goal, start)
 
 
 def test_segment_check_decides_the_edges():
