@@ -155,8 +155,8 @@ class PlannedTask:
     part as it is (or pulled in by :data:`HELD_MARGIN_M`) and :data:`TRANSIT_CLEARANCE_M` from everything except
     within :data:`NEAR_END_RAD` of the ends (``clearance except near its ends``), else from everything but the
     parts it touches at its target, which the part as it is passes :data:`PASSING_CLEARANCE_M` off away from the
-    ends (``among neighbours``); ``no clearance``, the part as it is (or pulled in), from everything (where those
-    searches failed)."""
+    ends (``among neighbours``); ``no clearance``, the part as it is (or pulled in), from everything, which the part
+    as it is passes :data:`PASSING_CLEARANCE_M` off away from the ends (where those searches failed)."""
 
     part: str
     grasp_q: np.ndarray
@@ -638,6 +638,15 @@ def _among_neighbours_validity(world: CellWorld, task: PartTask, exact, ends: tu
     return _ClearExceptNearEnds(_AllValid(clear, exact, world.passing_validity()), exact, ends)
 
 
+def _no_clearance_validity(world: CellWorld, exact, ends: tuple[np.ndarray, ...]):
+    """Validity for a carry's last resort: ``exact`` (the part held as it is, or pulled in by
+    :data:`HELD_MARGIN_M`) everywhere, and away from the ``ends`` (beyond :data:`NEAR_END_RAD`) the part as it is
+    keeps :data:`PASSING_CLEARANCE_M` from everything, as :func:`_among_neighbours_validity` has it pass its
+    neighbours. Checked pulled in all the way, the procedural table_6's shelf, carried this way past a leg it touches
+    at its target once its searches were seeded per query, could have passed up to 2 mm into it in mid-carry."""
+    return _ClearExceptNearEnds(_AllValid(exact, world.passing_validity()), exact, ends)
+
+
 def _retreat_validity(world: CellWorld, placed: str, in_kit: frozenset[str]):
     """Validity for the retreat of the open hand from ``placed``, just released: the exact check (the fingers may
     pass close to it and to its neighbours on the jig), and :data:`RETREAT_KIT_CLEARANCE_M` from the parts still
@@ -825,7 +834,7 @@ def _plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray, pro
             checks = [(CARRY_CHECKS[1], _among_neighbours_validity(world, task, exact, (lift[-1], insertion[0]),
                                                                    off_neighbours=True)),
                       (CARRY_CHECKS[2], _among_neighbours_validity(world, task, exact, (lift[-1], insertion[0]))),
-                      (CARRY_CHECKS[3], exact)]
+                      (CARRY_CHECKS[3], _no_clearance_validity(world, exact, (lift[-1], insertion[0])))]
             for k, (check_name, check) in enumerate(checks):
                 try:
                     carry = world.transit(lift[-1], insertion[0], check, name, "move to the target")

@@ -33,6 +33,7 @@ from cell.task import (
     _insertion,
     _insertion_limits,
     _lead_in,
+    _no_clearance_validity,
     _retreat_validity,
     _slot_entry,
     _timed_insertion,
@@ -330,7 +331,8 @@ def test_a_carry_among_neighbours_keeps_clear_of_everything_else(panda):
 def test_a_carry_among_neighbours_passes_them_with_the_part_as_it_is_away_from_its_ends(panda):
     """A part carried among its neighbours may be checked pulled in by HELD_MARGIN_M, so that it can slide along
     the faces it touches at the carry's ends; in mid-carry it must still keep PASSING_CLEARANCE_M from them as it
-    is (table_6's shelf, checked pulled in, passed 2 mm into a leg in mid-carry and met it in the simulator)."""
+    is (table_6's shelf, checked pulled in, passed 2 mm into a leg in mid-carry and met it in the simulator), and
+    so in the last resort, the carry with no clearance."""
     plank = trimesh.creation.box((0.008, 0.4, 0.02))
     post = trimesh.creation.box((0.01, 0.03, 0.3))
     grasp = Grasp(Pose.identity(), width_m=0.008, opening_m=0.02, score=1.0, centroid_score=1.0, contact_score=1.0)
@@ -351,14 +353,17 @@ def test_a_carry_among_neighbours_passes_them_with_the_part_as_it_is_away_from_i
         world.hold("plank", grasp, grasp.width_m, margin_m=HELD_MARGIN_M)
         exact = world.validity()
         q = world.solve_ik(Pose([0.5, 0.0, 0.5], down), start, exact, "plank", "test")
-        return (_among_neighbours_validity(world, task, exact, (far_end, start)),
-                _among_neighbours_validity(world, task, exact, (far_end, q)), q)
+        return ((_among_neighbours_validity(world, task, exact, (far_end, start)),
+                 _no_clearance_validity(world, exact, (far_end, start))),
+                (_among_neighbours_validity(world, task, exact, (far_end, q)),
+                 _no_clearance_validity(world, exact, (far_end, q))), q)
 
-    valid, valid_as_end, q = carried_past(-0.001)  # 1 mm into the plank as it is, 1 mm off it pulled in
-    assert not valid(q) and valid.first_invalid(q[None]) == 0
-    assert valid_as_end(q)  # near an end, the exact check with the part pulled in
-    valid, _, q = carried_past(PASSING_CLEARANCE_M + 0.0005)
-    assert valid(q)
+    checks, checks_as_end, q = carried_past(-0.001)  # 1 mm into the plank as it is, 1 mm off it pulled in
+    for valid, valid_as_end in zip(checks, checks_as_end):  # among neighbours, then the last resort: no clearance
+        assert not valid(q) and valid.first_invalid(q[None]) == 0
+        assert valid_as_end(q)  # near an end, the exact check with the part pulled in
+    checks, _, q = carried_past(PASSING_CLEARANCE_M + 0.0005)
+    assert all(valid(q) for valid in checks)
 
 
 def test_an_ik_hint_too_close_to_a_joint_limit_is_solved_again(panda):
