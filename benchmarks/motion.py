@@ -66,10 +66,10 @@ from planning.collision import ConvexPart
 from planning.fixture import fixture_pads
 from planning.grasp import antipodal_grasps
 from planning.gripper import HAND_FROM_TCP
-from planning.kitting import stable_rest_poses
 from planning.motion import MotionPlanningError, MotionSettings, plan_joint_path
 from planning.pose import Pose
 from planning.robot_collision import RobotCollisionChecker
+from planning.stability import stable_rest_poses
 
 CATEGORIES = ("chair", "table", "cabinet")
 LIFT_M = 0.10  # pre-grasp / pre-place: the grasp's TCP this far above the pick / the target (world +z)

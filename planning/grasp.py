@@ -57,6 +57,7 @@ from planning.gripper import (
     mesh_to_fcl,
 )
 from planning.pose import Pose
+from planning.stability import centre_of_mass
 
 __all__ = [
     "APPROACH_M",
@@ -202,12 +203,6 @@ def _bvh(mesh: trimesh.Trimesh, key: str | None = None) -> fcl.BVHModel:
     else:
         _BVH_CACHE.move_to_end(key)
     return model
-
-
-def _centre_of_mass(mesh: trimesh.Trimesh) -> np.ndarray:
-    if mesh.is_watertight and mesh.volume > 1e-12:
-        return np.asarray(mesh.center_mass, dtype=np.float64)
-    return np.asarray(mesh.centroid, dtype=np.float64)
 
 
 def thinnest_width_m(mesh: trimesh.Trimesh) -> float:
@@ -650,7 +645,7 @@ def _compute_candidates(
         stats.collision_free = int(np.count_nonzero(free))
         poses, widths, openings, pair = poses[free], widths[free], openings[free], pair[free]
         if len(poses):
-            com = _centre_of_mass(mesh)
+            com = centre_of_mass(mesh)
             centroid = np.exp(-np.linalg.norm(poses[:, :3, 3] - com, axis=1) / _CENTROID_SCALE_M)
             order = np.argsort(-centroid, kind="stable")
             _, first = np.unique(_dedup_keys(poses[order]), axis=0, return_index=True)

@@ -1,8 +1,9 @@
 """Kitting: where and how each loose part lies before the robot picks it.
 
-Every part starts at rest in one of its stable poses (trimesh's ``compute_stable_poses``) on a pedestal in the
-kitting area. A pedestal is a box under the part, inset from its footprint like the jig pads
-(:mod:`planning.fixture`), so that fingers can reach under a board's edge.
+Every part starts at rest in one of its stable poses (trimesh's ``compute_stable_poses``; whether it rests there
+is :mod:`planning.stability`'s to judge) on a pedestal in the kitting area: a box under the part, inset from its
+footprint like the jig pads, so that fingers can reach under a board's edge, with chocks beside a part that would
+roll (:mod:`planning.pedestal`).
 
 The kitting area is a ring around the robot base on the table (:class:`KittingArea`): between an inner radius
 (clear of the robot's base) and an outer radius (within reach), inside the table, outside keep-out rectangles
@@ -35,13 +36,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
-from scipy.optimize import linprog
 
-from planning.convex import convex_pieces
-from planning.fixture import FINGER_CLEARANCE_M, MIN_PAD_FRACTION
 from planning.grasp import APPROACH_M, Grasp, feasible_grasps, grasp_pose_key
 from planning.gripper import MAX_OPENING_M, clearance_gripper
+from planning.pedestal import Pedestal, chocks_for, cradle_chocks, cut_back, pedestal_for, standing_lean_m, top_box
 from planning.pose import Pose
+from planning.stability import SUPPORT_MARGIN_M, centre_of_mass, rests_stably, stable_rest_poses, upright_rest_pose
 
 HAND_CLEARANCE_M = 0.002  # grasps keep this from pedestals and neighbours (real hands are larger) ...
 TILTED_CLEARANCE_M = 0.004  # ... and this where the fingers close on a slant, sliding down a round part towards
@@ -63,12 +63,6 @@ BOARD_THICKNESS_RATIO = 0.25  # a part thinner than this fraction of its middle 
 STACK_OVERHANG_M = 0.04  # a stacked board overhangs the one under it by this much on one side (for the fingers)
 STACK_SUPPORT_M = 0.02  # ... and keeps its centre at least this far inside the lower board's edge
 TOP_FACE_FRACTION = 0.8  # a board's flat top covers at least this fraction of its footprint
-SUPPORT_MARGIN_M = 0.002  # the centre of mass lies at least this far inside the points a part rests on
-CONTACT_HEIGHT_M = 1e-4  # vertices this close to the support touch it (a round part's facets rise faster)
-NARROW_PART_M = 0.05  # a footprint narrower than this is grasped from beside: its pedestal is as wide as it ...
-NARROW_INSET_M = 0.005  # ... less this on each side ...
-NARROW_MIN_WIDTH_M = 0.008  # ... but at least this wide (or as wide as the part), to stand on
-TIP_ANGLE_DEG = 10.0  # a resting part must not tip over when tilted by this much
 CAPACITY_FRACTION = 0.75  # rectangles in a ring pack no denser than this: fail at once above it
 COMFORTABLE_FRACTION = 0.6  # places beyond this fraction of the ring's depth are tried last ...
 FAR_PENALTY = 3.0  # ... as if each metre beyond it were this many metres farther from the jig
@@ -79,18 +73,7 @@ SETTLE_MAX_COM_HEIGHT_RATIO = 1.0  # ... and it must lie low: its centre of mass
 # half width above the pedestal's top (it tips over only past 45 degrees)
 FRAME_CUTS_M = (0.03, 0.045, 0.06, 0.08)  # a pedestal under every grasp's fingers (a frame of thin bars lying
 # on it) is cut back by one of these from one side, where its bars then overhang for the fingers
-CHOCK_LENGTH_M = 0.02  # a chock's extent along the part ...
-CHOCK_WIDTH_M = 0.01  # ... and across it
-CHOCK_END_INSET_M = 0.002  # chocks stop this short of the part's ends
-CHOCK_HEIGHT_FRACTION = 0.35  # a chock rises this fraction of the part's height above the pedestal's top ...
-CHOCK_MAX_HEIGHT_M = 0.01  # ... at most this much
-CHOCK_CLEARANCE_M = 0.0005  # between a chock and the part's side
-CHOCK_LEAN_M = 0.004  # chocks rise so that a board pivoting on its foot onto them moves its top by this ...
-CHOCK_TALL_FRACTION = 0.25  # ... with chocks rising at most this fraction of its height above the pedestal
 LEAN_SHARES = (1.0, 0.5)  # a standing board's grasps open for these shares of its lean (widest first)
-CHOCK_CONTACT_SLOP_M = 0.0003  # a part between chocks moves this much farther than their clearance: the simulated
-# part is inset by 0.25 mm (half the joint clearance) and sinks about 0.05 mm into a contact
-ELONGATED_RATIO = 2.0  # only a footprint at least this many times longer than wide is cradled
 MAX_REST_POSES = 24  # stable poses considered per part (a round leg has one per facet, each turned about its axis)
 MAX_GROUND_POSES = 7  # ... of which this many (the best for picking from above) are tried on the ground
 SCORED_GRASPS = 20  # the grasps (best at the target first) that rank the rest poses
@@ -106,35 +89,7 @@ GRASP_OPTIONS = 4  # grasps (with arm configurations) kept per part, so a later 
 LAYOUT_RETRIES = 2  # parts that find no place are laid out first in a new try of the layout, at most this many
 
 
-@dataclass(frozen=True)
-class Pedestal:
-    """A box standing on the table under a part (``size_m``, its centre at ``world_from_pedestal``), and for a
-    part that would roll (a round leg), chocks: posts beside both ends of the part, from the table to a little
-    above the pedestal's top, that cradle it (``chocks``: (size, pedestal_from_chock) per post, box centres)."""
-
-    size_m: tuple[float, float, float]
-    world_from_pedestal: Pose  # box centre
-    chocks: tuple[tuple[tuple[float, float, float], Pose], ...] = ()
-
-    def mesh(self) -> trimesh.Trimesh:
-        """The pedestal and its chocks (separate boxes; pedestal frame, metres). Pedestals of the same shape share
-        one mesh (kitting asks for it thousands of times): do not modify it."""
-        key = (tuple(self.size_m), tuple((tuple(size), pose.position.tobytes(), pose.quat_wxyz.tobytes())
-                                         for size, pose in self.chocks))
-        mesh = _PEDESTAL_MESHES.get(key)
-        if mesh is None:
-            boxes = [trimesh.creation.box(self.size_m)]
-            boxes += [trimesh.creation.box(size, transform=pose.matrix()) for size, pose in self.chocks]
-            mesh = trimesh.util.concatenate(boxes) if len(boxes) > 1 else boxes[0]
-            if len(_PEDESTAL_MESHES) >= _PEDESTAL_MESHES_KEPT:
-                _PEDESTAL_MESHES.pop(next(iter(_PEDESTAL_MESHES)))
-            _PEDESTAL_MESHES[key] = mesh
-        return mesh
-
-
-_PEDESTAL_MESHES: dict[tuple, trimesh.Trimesh] = {}
 _TABLE_SLAB = trimesh.creation.box((2.0, 2.0, 0.02))  # the table under the physics check of resting parts
-_PEDESTAL_MESHES_KEPT = 512
 
 
 @dataclass(frozen=True)
@@ -209,244 +164,6 @@ class KittingError(RuntimeError):
     def __init__(self, message: str, kind: str = NO_PLACE, part: str | None = None) -> None:
         super().__init__(message)
         self.kind, self.part = kind, part
-
-
-def stable_rest_poses(mesh: trimesh.Trimesh, max_poses: int = 6) -> list[tuple[np.ndarray, float]]:
-    """(rest_from_part 4x4, probability), most probable first: the part resting on z = 0, centred in x-y."""
-    with np.errstate(invalid="ignore"):  # a sliver face's solid angle is sqrt(< 0): NaN, taken as improbable below
-        transforms, probabilities = trimesh.poses.compute_stable_poses(mesh, n_samples=1, threshold=0.0)
-    probabilities = np.nan_to_num(np.asarray(probabilities, dtype=np.float64), nan=0.0)
-    out = []
-    for transform, probability in sorted(zip(transforms, probabilities), key=lambda tp: -tp[1])[:max_poses]:
-        moved = mesh.vertices @ transform[:3, :3].T + transform[:3, 3]
-        centre = 0.5 * (moved.min(axis=0) + moved.max(axis=0))
-        shift = np.eye(4)
-        shift[:3, 3] = [-centre[0], -centre[1], -moved[:, 2].min()]
-        out.append((shift @ transform, float(probability)))
-    return out
-
-
-def upright_rest_pose(mesh: trimesh.Trimesh, world_from_part_rotation: np.ndarray) -> np.ndarray:
-    """``rest_from_part`` (4x4) of the part turned as ``world_from_part_rotation`` (e.g. as it sits in the
-    assembly), lowest point on z = 0, centred in x-y. Whether it rests stably there is checked per support."""
-    transform = np.eye(4)
-    transform[:3, :3] = world_from_part_rotation
-    moved = mesh.vertices @ world_from_part_rotation.T
-    centre = 0.5 * (moved.min(axis=0) + moved.max(axis=0))
-    transform[:3, 3] = [-centre[0], -centre[1], -moved[:, 2].min()]
-    return transform
-
-
-def pedestal_for(half_extent_xy: np.ndarray, world_from_rest: Pose, height_m: float, wide: bool = False) -> Pedestal:
-    """A pedestal under a footprint of half extents ``half_extent_xy`` centred in the ``rest`` frame (whose x-y
-    plane is the pedestal's top), inset for the fingers along the footprint's wide sides; ``wide``: inset by
-    :data:`NARROW_INSET_M` only, all round (a frame lying flat falls around the inset one, through its opening)."""
-    extent = 2.0 * np.asarray(half_extent_xy, dtype=np.float64)
-    inset = np.minimum(FINGER_CLEARANCE_M, 0.5 * (1.0 - MIN_PAD_FRACTION) * extent)
-    # across a narrow part the fingers close from beside it, not from under it: support it full width
-    inset = np.where((extent < NARROW_PART_M) | wide, NARROW_INSET_M, inset)
-    size = np.maximum(extent - 2 * inset, np.minimum(extent, NARROW_MIN_WIDTH_M))
-    rest_from_pedestal = Pose([0.0, 0.0, -0.5 * height_m], [1.0, 0.0, 0.0, 0.0])
-    return Pedestal((float(size[0]), float(size[1]), height_m), world_from_rest @ rest_from_pedestal)
-
-
-def chocks_for(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: float,
-               support_rest_xy: np.ndarray) -> tuple | None:
-    """Chocks (see :class:`Pedestal`; pedestal frame, the pedestal ``height_m`` tall and centred under the rest
-    frame's origin) that cradle an elongated part lying in its rest pose, or None when they would not make it
-    rest: the part's contact line on the support (``support_rest_xy``, rest frame x-y) must hold its centre of
-    mass along the part, and the chocks hold it across."""
-    rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
-    span = rested.max(axis=0) - rested.min(axis=0)
-    along = 0 if span[0] >= span[1] else 1
-    if span[along] < ELONGATED_RATIO * span[1 - along]:
-        return None
-    com_rest = rest_from_part[:3, :3] @ _centre_of_mass(mesh) + rest_from_part[:3, 3]
-    touching = _touching(mesh, rest_from_part, support_rest_xy)
-    if len(touching) < 2 or not (touching[:, along].min() + SUPPORT_MARGIN_M < com_rest[along]
-                                 < touching[:, along].max() - SUPPORT_MARGIN_M):
-        return None
-    return cradle_chocks(mesh, rest_from_part, height_m, inwards=False)
-
-
-def cradle_chocks(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: float,
-                  inwards: bool = True) -> tuple | None:
-    """The chocks of :func:`chocks_for` for an elongated part lying in its rest pose, whatever it touches the
-    support with (whether it rests there is the caller's to judge), or None when it is not elongated: a pair of
-    posts beside it at each end, where its cross-section comes below the chocks' top; ``inwards``: else nearer its
-    middle (a tapered leg's thin end lies above them), else None."""
-    rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
-    span = rested.max(axis=0) - rested.min(axis=0)
-    along = 0 if span[0] >= span[1] else 1
-    across = 1 - along
-    if span[along] < ELONGATED_RATIO * span[across]:
-        return None
-    com_along = float((rest_from_part[:3, :3] @ _centre_of_mass(mesh) + rest_from_part[:3, 3])[along])
-    rise = min(CHOCK_HEIGHT_FRACTION * span[2], CHOCK_MAX_HEIGHT_M)  # low, for a round leg lying down
-    if span[2] > ELONGATED_RATIO * span[across]:
-        # a board standing on its edge leans on its chocks by their clearance over their height: they rise far
-        # enough that, pivoting on its foot, its top moves about CHOCK_LEAN_M (on 1 cm chocks a 3 mm panel 25 cm
-        # tall leans by centimetres), capped at a quarter of its height (chocks rising to half of it blocked the
-        # carries past them); its foot may slide too, and the simulated part is smaller: standing_lean_m
-        rise = max(rise, min(CHOCK_CLEARANCE_M * span[2] / CHOCK_LEAN_M, CHOCK_TALL_FRACTION * span[2]))
-    chocks = []
-    for end in (rested[:, along].min() + CHOCK_END_INSET_M, rested[:, along].max() - CHOCK_END_INSET_M):
-        inward = 1.0 if end < com_along else -1.0
-        steps = max(int(inward * (com_along - end) // CHOCK_LENGTH_M), 1) if inwards else 1  # up to its middle
-        for _ in range(steps):
-            lo, hi = sorted((end, end + inward * CHOCK_LENGTH_M))
-            beside = _section_below(mesh, rest_from_part, along, 0.5 * (lo + hi), rise)
-            if len(beside):
-                break
-            end += inward * CHOCK_LENGTH_M
-        if len(beside) == 0:
-            return None
-        # the chock clears the part all along its length (a bent bar runs across it), and the part's convex
-        # pieces, which the simulation gives it and which bulge beyond the mesh: chocks set from the mesh's section
-        # at their middle had chair_ivar_0668's frame of tubes 1.3 mm into them from the start, wedged there
-        in_slab = rested[(rested[:, along] >= lo) & (rested[:, along] <= hi) & (rested[:, 2] <= rise)]
-        beside = np.concatenate([beside, in_slab, *(_section_below(mesh, rest_from_part, along, at, rise)
-                                                    for at in (lo, hi)),
-                                 _pieces_beside(mesh, rest_from_part, along, lo, hi, rise)])
-        for side in (-1.0, 1.0):
-            face = (beside[:, across].max() if side > 0 else -beside[:, across].min()) + CHOCK_CLEARANCE_M
-            centre = np.zeros(3)
-            centre[along] = 0.5 * (lo + hi)
-            centre[across] = side * (face + 0.5 * CHOCK_WIDTH_M)
-            centre[2] = 0.5 * rise  # pedestal frame: the post spans the pedestal's height plus the rise
-            size = np.zeros(3)
-            size[along], size[across], size[2] = hi - lo, CHOCK_WIDTH_M, height_m + rise
-            chocks.append((tuple(float(v) for v in size), Pose(centre, [1.0, 0.0, 0.0, 0.0])))
-    return tuple(chocks)
-
-
-def standing_lean_m(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, pedestal: Pedestal,
-                    height_m: float) -> float:
-    """How far the top of a board standing on its edge between the ``pedestal``'s chocks (as
-    :func:`cradle_chocks` makes them; the pedestal ``height_m`` tall) may move from where it stands, metres: its
-    foot slides across the gap c to one side (c: the chocks' clearance and :data:`CHOCK_CONTACT_SLOP_M`) and it
-    leans over the chocks on the other side, 2 c over their rise, up to its height H: ``c (1 + 2 H / rise)``; 0 for
-    a part that does not stand on its edge there, or has no chocks."""
-    if not pedestal.chocks:
-        return 0.0
-    rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
-    span = rested.max(axis=0) - rested.min(axis=0)
-    if span[2] <= ELONGATED_RATIO * min(span[0], span[1]):
-        return 0.0
-    rise = min(size[2] for size, _ in pedestal.chocks) - height_m
-    gap = CHOCK_CLEARANCE_M + CHOCK_CONTACT_SLOP_M
-    return float(gap * (1.0 + 2.0 * span[2] / rise)) if rise > 0.0 else 0.0
-
-
-def _centre_of_mass(mesh: trimesh.Trimesh) -> np.ndarray:
-    """The part's centre of mass (part frame): of its volume when closed, else its surface centroid."""
-    return mesh.center_mass if mesh.is_watertight and mesh.volume > 0 else mesh.centroid
-
-
-def _section_below(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, axis: int, at: float,
-                   below_z: float) -> np.ndarray:
-    """Points (rest frame) of the part's cross-section by the plane ``rest[axis] = at`` lying below ``below_z``."""
-    rested = trimesh.Trimesh(mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3], mesh.faces,
-                             process=False)
-    normal = np.zeros(3)
-    normal[axis] = 1.0
-    segments = trimesh.intersections.mesh_plane(rested, normal, normal * at)
-    if len(segments) == 0:
-        return np.zeros((0, 3))
-    t = np.linspace(0.0, 1.0, 11)[None, :, None]
-    points = (segments[:, :1] * (1 - t) + segments[:, 1:] * t).reshape(-1, 3)
-    return points[points[:, 2] <= below_z]
-
-
-def _pieces_beside(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, axis: int, lo: float, hi: float,
-                   below_z: float) -> np.ndarray:
-    """The points (rest frame) of the part's convex pieces (:func:`planning.convex.convex_pieces`, the shapes the
-    simulation gives it) farthest to either side across ``axis`` within the slab ``lo <= rest[axis] <= hi`` below
-    ``below_z``, two per piece that reaches into it: what a chock beside that stretch of the part must clear."""
-    across = np.zeros(3)
-    across[1 - axis] = 1.0
-    slab = np.zeros((3, 3))
-    slab[0, axis], slab[1, axis], slab[2, 2] = -1.0, 1.0, 1.0
-    slab_b = np.array([-lo, hi, below_z])
-    rotation, shift = rest_from_part[:3, :3], rest_from_part[:3, 3]
-    points = [np.zeros((0, 3))]
-    for piece in convex_pieces(mesh):
-        normals = np.asarray(piece.face_normals) @ rotation.T  # rest frame: normals @ x <= offsets inside
-        offsets = np.einsum("ij,ij->i", np.asarray(piece.face_normals), piece.triangles[:, 0]) + normals @ shift
-        a_ub, b_ub = np.vstack([normals, slab]), np.concatenate([offsets + 1e-9, slab_b])
-        for sign in (-1.0, 1.0):
-            result = linprog(-sign * across, A_ub=a_ub, b_ub=b_ub, bounds=(None, None), method="highs")
-            if result.status != 0:
-                break  # the piece does not reach into the slab
-            points.append(result.x[None, :])
-    return np.concatenate(points)
-
-
-def _inside_convex(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
-    """Which 2-D ``points`` lie inside the convex ``polygon`` (corners in order, either direction)."""
-    edges = np.roll(polygon, -1, axis=0) - polygon
-    cross = edges[None, :, 0] * (points[:, None, 1] - polygon[None, :, 1]) \
-        - edges[None, :, 1] * (points[:, None, 0] - polygon[None, :, 0])
-    return np.all(cross >= -1e-12, axis=1) | np.all(cross <= 1e-12, axis=1)
-
-
-def _clip(polygon: np.ndarray, convex: np.ndarray) -> np.ndarray:
-    """``polygon`` (2-D corners) clipped to the ``convex`` polygon (Sutherland-Hodgman)."""
-    first, second = convex[1] - convex[0], convex[2] - convex[1]
-    orientation = np.sign(first[0] * second[1] - first[1] * second[0]) or 1.0  # 2-D cross product
-    out = polygon
-    for a, b in zip(convex, np.roll(convex, -1, axis=0)):
-        if len(out) == 0:
-            break
-        edge = b - a
-        side = orientation * (edge[0] * (out[:, 1] - a[1]) - edge[1] * (out[:, 0] - a[0]))
-        kept = []
-        for k in range(len(out)):
-            j = (k + 1) % len(out)
-            if side[k] >= 0:
-                kept.append(out[k])
-            if (side[k] >= 0) != (side[j] >= 0):
-                t = side[k] / (side[k] - side[j])
-                kept.append(out[k] + t * (out[j] - out[k]))
-        out = np.array(kept).reshape(-1, 2)
-    return out
-
-
-def _touching(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, support_rest_xy: np.ndarray) -> np.ndarray:
-    """(K, 2) rest-frame x-y points where the resting part touches the support: its lowest vertices over the
-    support's outline, and its lowest faces clipped to that outline."""
-    rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
-    low = rested[:, 2] < CONTACT_HEIGHT_M
-    support = np.asarray(support_rest_xy, dtype=np.float64)
-    pieces = [rested[low, :2][_inside_convex(rested[low, :2], support)]]
-    for face in mesh.faces[np.all(low[mesh.faces], axis=1)]:
-        clipped = _clip(rested[face, :2], support)
-        if len(clipped):
-            pieces.append(clipped)
-    return np.concatenate(pieces)
-
-
-def rests_stably(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, support_rest_xy: np.ndarray,
-                 margin_m: float = SUPPORT_MARGIN_M) -> bool:
-    """Whether the part, lying in its rest pose (rest frame: lowest point at z = 0), stands on a support whose top
-    is the convex polygon ``support_rest_xy`` (rest frame x-y, at z = 0): the points where it touches the
-    support surround its centre of mass with ``margin_m`` to spare, more for a high centre of mass (it must
-    survive a tilt of :data:`TIP_ANGLE_DEG`). (A stable pose of the part's hull is not
-    enough on a pedestal inset from the footprint, nor for parts whose underside is not flat.)"""
-    touching = _touching(mesh, rest_from_part, support_rest_xy)
-    if len(touching) < 3:
-        return False
-    from scipy.spatial import ConvexHull, QhullError
-
-    try:
-        hull = touching[ConvexHull(touching).vertices]
-    except QhullError:  # collinear: a knife edge
-        return False
-    com_rest = rest_from_part[:3, :3] @ _centre_of_mass(mesh) + rest_from_part[:3, 3]
-    # a tall part needs a wider base: it must survive a tilt of TIP_ANGLE_DEG (bumps, the arm passing by)
-    margin_m = max(margin_m, float(com_rest[2]) * np.tan(np.radians(TIP_ANGLE_DEG)))
-    probes = com_rest[:2] + margin_m * np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]])
-    return bool(np.all(_inside_convex(probes, hull)))
 
 
 def _yaw(angle_rad: float) -> Pose:
@@ -871,12 +588,12 @@ class _Layout:
         """``pedestal`` (rest frame) cut back by :data:`FRAME_CUTS_M` from one side: per side the smallest cut that
         frees some of the ``grasps`` that are ``usable`` (at the target) and leaves the part's centre of mass over
         the top, the sides freeing the most grasps first."""
-        com = (rest_from_part[:3, :3] @ _centre_of_mass(self.meshes[name]) + rest_from_part[:3, 3])[:2]
+        com = (rest_from_part[:3, :3] @ centre_of_mass(self.meshes[name]) + rest_from_part[:3, 3])[:2]
         found = []
         for side in ((0, 1), (0, -1), (1, 1), (1, -1)):
             for cut_m in FRAME_CUTS_M:
-                cut = _cut_back(pedestal, side, cut_m)
-                lo, hi = _top_box(cut)
+                cut = cut_back(pedestal, side, cut_m)
+                lo, hi = top_box(cut)
                 if np.any(com < lo + SUPPORT_MARGIN_M) or np.any(com > hi - SUPPORT_MARGIN_M):
                     break  # cut back past its centre of mass
                 freed = sum(map(usable, self._clear_of(grasps, rest_from_part, cut)))
@@ -1019,7 +736,7 @@ class _Layout:
     @staticmethod
     def _top(pedestal: Pedestal) -> np.ndarray:
         """The pedestal's top outline (4, 2) in the rest frame (centred under the part, or cut back off centre)."""
-        return _box_corners(*_top_box(pedestal))
+        return _box_corners(*top_box(pedestal))
 
     def _stack_of(self, slot: KittingSlot) -> set[str]:
         members = {slot.part}
@@ -1098,7 +815,7 @@ def _settled_low(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, lying: np.nd
     """Whether a part laid down in ``rest_from_part`` that settled in ``lying`` (both rest frames, 4x4) lies as
     :meth:`_Layout._settled` accepts: turned by at most :data:`SETTLE_MAX_TILT_DEG`, its centre of mass sunk by at
     most :data:`SETTLE_MAX_DROP_M`, and lying low (:data:`SETTLE_MAX_COM_HEIGHT_RATIO`)."""
-    com = _centre_of_mass(mesh)
+    com = centre_of_mass(mesh)
     turned = lying[:3, :3] @ rest_from_part[:3, :3].T
     tilt = np.degrees(np.arccos(np.clip(turned[2, 2], -1.0, 1.0)))  # how far its up axis turned
     drop = float((rest_from_part[:3, :3] @ com)[2] + rest_from_part[2, 3] - (lying[:3, :3] @ com)[2] - lying[2, 3])
@@ -1113,24 +830,6 @@ def _footprint_centre(mesh: trimesh.Trimesh, rest_from_part: np.ndarray) -> np.n
     """Centre (x, y) of the posed part's bounding box in the rest frame."""
     moved = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
     return 0.5 * (moved.min(axis=0) + moved.max(axis=0))[:2]
-
-
-def _cut_back(pedestal: Pedestal, side: tuple[int, int], cut_m: float) -> Pedestal:
-    """``pedestal`` (no chocks) with its top cut back by ``cut_m`` from its side ``side`` = (axis, sign) (0: x,
-    1: y of its own frame); the opposite edge stays where it is."""
-    axis, sign = side
-    size = list(pedestal.size_m)
-    size[axis] -= cut_m
-    shift = np.zeros(3)
-    shift[axis] = -sign * 0.5 * cut_m
-    return dataclasses.replace(pedestal, size_m=tuple(size), world_from_pedestal=pedestal.world_from_pedestal
-                               @ Pose(shift, [1.0, 0.0, 0.0, 0.0]))
-
-
-def _top_box(pedestal: Pedestal) -> tuple[np.ndarray, np.ndarray]:
-    """(min, max) x-y corners of the pedestal's top, in the frame it is posed in (unrotated about z)."""
-    centre, half = pedestal.world_from_pedestal.position[:2], 0.5 * np.array(pedestal.size_m[:2])
-    return centre - half, centre + half
 
 
 def _rest_half(mesh: trimesh.Trimesh, rest_from_part: np.ndarray) -> tuple[np.ndarray, bool]:
@@ -1190,7 +889,7 @@ def _tips_under(mesh: trimesh.Trimesh, world_from_part: Pose):
     points = mesh.vertices @ rotation.T
     low = float(points[:, 2].min())
     foot = points[points[:, 2] <= low + FOOT_M]
-    com = rotation @ _centre_of_mass(mesh)
+    com = rotation @ centre_of_mass(mesh)
     height = float(com[2]) - low
 
     def tips(grasp: Grasp) -> bool:

@@ -21,10 +21,10 @@ from planning.kitting import (
     _tips_under,
     clear_at_pick,
     plan_kitting,
-    stable_rest_poses,
 )
 from planning.pose import Pose
 from planning.sequence import GraspChecker
+from planning.stability import stable_rest_poses
 from scenes import sample_folder
 
 AREA = KittingArea(centre_xy=(0.0, 0.0), inner_radius_m=0.32, outer_radius_m=0.72, table_min_xy=(-0.55, -0.8),
@@ -165,7 +165,8 @@ def test_a_part_laid_out_first_takes_the_place_nearest_the_jig():
 
 
 def _plain_pedestal_top(mesh, rest_from_part):
-    from planning.kitting import _rest_half, pedestal_for
+    from planning.kitting import _rest_half
+    from planning.pedestal import pedestal_for
     from planning.pose import Pose
 
     half, _ = _rest_half(mesh, rest_from_part)
@@ -174,7 +175,8 @@ def _plain_pedestal_top(mesh, rest_from_part):
 
 
 def test_a_round_leg_would_roll_off_a_pedestal_and_is_cradled_by_chocks():
-    from planning.kitting import Pedestal, chocks_for, rests_stably
+    from planning.pedestal import Pedestal, chocks_for
+    from planning.stability import rests_stably
 
     leg = trimesh.creation.cylinder(radius=0.009, height=0.227, sections=24)
     rest_from_part, _ = stable_rest_poses(leg)[0]
@@ -220,7 +222,7 @@ def test_chocks_clear_a_bent_bar_and_its_convex_pieces_all_along_them():
     # gives the bar bulge beyond its mesh. Chocks set from the bar's section at their middle went 4 mm into it
     # (a real chair's frame of tubes lay 1.3 mm into its chocks from the start, jammed there)
     from planning.convex import convex_pieces
-    from planning.kitting import CHOCK_CLEARANCE_M, cradle_chocks
+    from planning.pedestal import CHOCK_CLEARANCE_M, cradle_chocks
 
     bar = _bent_bar()
     assert bar.is_watertight
@@ -248,7 +250,7 @@ def test_chocks_clear_a_bent_bar_and_its_convex_pieces_all_along_them():
 
 
 def test_a_square_beam_rests_without_chocks():
-    from planning.kitting import rests_stably
+    from planning.stability import rests_stably
 
     beam = trimesh.creation.box([0.227, 0.018, 0.018])
     rest_from_part, _ = stable_rest_poses(beam)[0]
@@ -432,7 +434,8 @@ def test_a_board_standing_between_chocks_is_picked_with_the_hand_opened_for_its_
     down beside its top clears it leaning onto either chock, and as usual at its target; a block 4 cm thick stands
     without chocks and gets the usual opening at both."""
     from planning.grasp import GRASP_CLEARANCE_M, antipodal_grasps
-    from planning.kitting import standing_lean_m, upright_rest_pose
+    from planning.pedestal import standing_lean_m
+    from planning.stability import upright_rest_pose
 
     board = trimesh.creation.box((0.18, 0.011, 0.128))
     grasps = antipodal_grasps(board, np.random.default_rng(0))

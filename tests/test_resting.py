@@ -14,9 +14,11 @@ from cell.bodies import add_convex_body
 from cell.bullet import BulletClient
 from cell.resting import PhysicsRestCheck
 from cell.simulate import SimSettings, configure_physics
-from planning.kitting import _rest_half, chocks_for, pedestal_for, rests_stably, upright_rest_pose
+from planning.kitting import _rest_half
 from planning.payload import mass_properties
+from planning.pedestal import chocks_for, pedestal_for
 from planning.pose import Pose
+from planning.stability import rests_stably, upright_rest_pose
 
 PEDESTAL_HEIGHT_M = 0.12
 IDENTITY = Pose([0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0])
@@ -212,7 +214,7 @@ def test_a_panel_nudged_onto_its_chocks_moves_its_top_no_farther_than_kitting_al
     way) and its top ends up to about a centimetre from where it stood: within :func:`standing_lean_m`, which
     kitting opens the hand by on each side at its pick, and beyond what the chocks' clearance alone gives
     (the simulated part is inset; cabinet_13's drawer side leaned onto a finger planned with 5 mm to spare)."""
-    from planning.kitting import CHOCK_CLEARANCE_M, standing_lean_m
+    from planning.pedestal import CHOCK_CLEARANCE_M, standing_lean_m
 
     panel = trimesh.creation.box((0.3, thickness_m, height_m))
     _, _, _, chocks = _on_pedestal(panel)
@@ -244,7 +246,8 @@ def test_a_frame_lying_flat_falls_through_its_usual_pedestal_and_settles_on_a_wi
     settling, kitting lays it flat as it sits in its assembly on a pedestal inset 5 mm, where it rests;
     without it, it stands the frame on an edge."""
     from planning.grasp import antipodal_grasps
-    from planning.kitting import NARROW_INSET_M, KittingArea, plan_kitting
+    from planning.kitting import KittingArea, plan_kitting
+    from planning.pedestal import NARROW_INSET_M
 
     frame = _square_frame(0.24, 0.02, 0.03)
     flat = upright_rest_pose(frame, np.eye(3))
@@ -283,7 +286,8 @@ def test_a_frame_of_thin_bars_lies_on_a_pedestal_cut_back_from_one_side():
     from one side, so that the bar there overhangs it, and the frame rests on what is left; the grasp it picks
     closes on that bar, beyond the pedestal's edge."""
     from planning.grasp import antipodal_grasps
-    from planning.kitting import HAND, NARROW_INSET_M, KittingArea, clear_at_pick, plan_kitting
+    from planning.kitting import HAND, KittingArea, clear_at_pick, plan_kitting
+    from planning.pedestal import NARROW_INSET_M
 
     frame = _square_frame(0.24, 0.012, 0.012)
     flat = upright_rest_pose(frame, np.eye(3))
