@@ -209,9 +209,9 @@ class CellWorld:
         # free-space moves keep TRANSIT_CLEARANCE_M from every obstacle (the simulator's and a real robot's
         # geometry is a little larger than the planning model); moves into contact use the exact one
         self.transit_checker = RobotCollisionChecker(world_from_base.matrix(), {})
-        # the held part as it is, grown by PASSING_CLEARANCE_M, whatever its margin (see _among_neighbours_validity):
-        # seldom needed, so its world is brought up to date only when it is
-        self.passing_checker = RobotCollisionChecker(world_from_base.matrix(), {})
+        # the held part as it is, grown by PASSING_CLEARANCE_M, whatever its margin (see _among_neighbours_validity),
+        # on top of a check of the robot: seldom needed, so its world is brought up to date only when it is
+        self.passing_checker = RobotCollisionChecker(world_from_base.matrix(), {}, held_only=True)
         self._obstacles: dict[str, tuple[ConvexPart, np.ndarray]] = {}
         self._passing_obstacles: dict[str, tuple[ConvexPart, np.ndarray]] | None = None
         self._held: tuple[str | None, Grasp | None, float] = (None, None, 0.0)  # part, grasp, opening
@@ -242,8 +242,9 @@ class CellWorld:
 
     def passing_validity(self):
         """``q -> bool``: the part in the hand (as :meth:`hold` put it there) as it is, grown by
-        :data:`PASSING_CLEARANCE_M`, and the robot clear of everything where it lies now; the held weight is not
-        checked. The world and the hold are taken as they are when this is called."""
+        :data:`PASSING_CLEARANCE_M`, clear of everything where it lies now. Neither the robot nor the held weight is
+        checked: combine it with a check that does (:func:`_among_neighbours_validity`). The world and the hold are
+        taken as they are when this is called."""
         if self._passing_obstacles is not self._obstacles:
             self.passing_checker.set_obstacles(self._obstacles)
             self._passing_obstacles = self._obstacles

@@ -256,6 +256,8 @@ class RobotCollisionChecker:
     world_from_base: (4, 4) the robot base in the world frame (metres).
     obstacles: name -> (ConvexPart, world_from_part (4, 4)) of everything the robot must not touch; replace them
     with :meth:`set_obstacles`, skip some for one query with ``ignore``.
+    held_only: check only the held part against the world (not the arm's links nor the links against each other),
+    for a check added to another that already covers the robot (the held part grown by a clearance).
     Broad phase in numpy (FCL's managers hand back fresh Python wrappers in their callbacks, so the bodies could not
     be named); narrow phase: ``fcl.collide`` on convex pairs. Not thread-safe (FCL objects and the pose cache are
     shared).
@@ -263,7 +265,8 @@ class RobotCollisionChecker:
 
     def __init__(self, world_from_base: np.ndarray, obstacles: dict[str, tuple[ConvexPart, np.ndarray]],
                  urdf_path: str | None = None, self_clearance_m: float = SELF_CLEARANCE_M,
-                 link_clearance_m: float = LINK_CLEARANCE_M, finger_clearance_m: float = FINGER_CLEARANCE_M) -> None:
+                 link_clearance_m: float = LINK_CLEARANCE_M, finger_clearance_m: float = FINGER_CLEARANCE_M,
+                 held_only: bool = False) -> None:
         self.chain = load_chain(urdf_path or panda_urdf_path())
         self.self_clearance_m = float(self_clearance_m)
         self.link_clearance_m = float(link_clearance_m)
@@ -285,8 +288,10 @@ class RobotCollisionChecker:
                 self._mesh_from_box.append(link_from_mesh @ mesh_from_box)
                 link_half.append(half)
         self._link_half = np.array(link_half)
-        self._links_vs_world = np.array([name != BASE_LINK for name in self._link_names])  # base: on its table
-        n = len(self._link_names)
+        self.held_only = bool(held_only)
+        # the base stands on its table
+        self._links_vs_world = np.array([name != BASE_LINK and not held_only for name in self._link_names], dtype=bool)
+        n = 0 if held_only else len(self._link_names)
         self._self_pairs = np.array([(i, j) for i in range(n) for j in range(i + 1, n)
                                      if frozenset((self._link_names[i], self._link_names[j])) not in ALLOWED_SELF_PAIRS
                                      and self._link_names[i] != self._link_names[j]], dtype=np.int64).reshape(-1, 2)

@@ -255,6 +255,33 @@ def test_hand_ignore_spares_the_hand_but_not_the_arms_links():
     assert checker.is_valid(q, ignore=frozenset({"board"}))
 
 
+def test_a_held_only_checker_checks_the_held_part_and_nothing_of_the_robot():
+    """``held_only``: the held part against the world, not the arm's links against it nor against each other (a
+    check added to one that covers the robot)."""
+    q = np.array(load_scene().robot.home_q)
+    full, held_only = RobotCollisionChecker(np.eye(4), {}), RobotCollisionChecker(np.eye(4), {}, held_only=True)
+    world_from_tcp = full.world_from_tcp(q)
+    above = np.eye(4)
+    above[:3, 3] = world_from_tcp[:3, 3] + [0.0, 0.0, 0.2]
+    board = {"board": (ConvexPart.from_mesh("board", trimesh.creation.box([0.3, 0.3, 0.01])), above)}
+    pebble = {"pebble": (ConvexPart.from_mesh("pebble", trimesh.creation.box([0.004, 0.004, 0.004])),
+                         world_from_tcp)}
+    folded = np.array([0.65, -0.89, -2.26, -3.04, -2.69, 0.82, 0.34])  # the forearm against the shoulder
+    for checker in (full, held_only):
+        checker.hold(ConvexPart.from_mesh("cube", trimesh.creation.box([0.02, 0.02, 0.02])), np.eye(4),
+                     opening_m=0.08)
+    for checker in (full, held_only):  # a board the wrist meets 20 cm above the TCP, and the folded elbow
+        checker.set_obstacles(board)
+    assert full.first_collision(q).a.startswith("panda_link") and held_only.first_collision(q) is None
+    assert not full.is_valid(folded) and held_only.first_invalid(np.stack([q, folded])) is None
+    for checker in (full, held_only):  # a pebble inside the cube in the hand, which only the cube reaches
+        checker.set_obstacles(pebble)
+    assert held_only.first_collision(q).a == "held cube" and full.first_collision(q).a == "held cube"
+    assert not held_only.segment_valid(q + 0.01, q)
+    held_only.hold(None)
+    assert held_only.is_valid(q)
+
+
 def test_finger_opening_moves_the_fingers():
     checker = RobotCollisionChecker(np.eye(4), {})
     q = np.array(load_scene().robot.home_q)
