@@ -36,6 +36,9 @@ single-threaded) of the call, failures included.
 Verification. Each returned path is re-checked densely (at most 0.001 rad per joint between samples) for contact
 in *both* collision models: ours (FCL's convex test) and MPlib's distance query (<= 0; its collision query also
 reports pairs about 2 mm apart, where its own distance query and ours agree they are apart, so it does not judge).
+Ours judges with its clearances off: our planner keeps the arm's links 1.5 mm, the fingers 1.2 mm and the links 3 mm
+from each other (``planning.robot_collision``: the simulator's hulls are larger), which is our planner's choice, not
+contact; judged with them (from commit e01c41e on), an MPlib path passing a part 1.2 mm off counted as in contact.
 "Collision-free" counts the paths with no sample in contact; "overlapping" the paths where MPlib's distance query
 reports interpenetration (not only touching within numerical precision).
 """
@@ -336,24 +339,29 @@ class OurPlanner:
 
     def __init__(self, scene: Scene, lower: np.ndarray, upper: np.ndarray, time_limit_s: float, seed: int) -> None:
         self.checker = RobotCollisionChecker(scene.robot.world_from_base.matrix(), {})
+        # the same model without the clearances the planner keeps: contact, for the re-check of both planners' paths
+        self.exact = RobotCollisionChecker(scene.robot.world_from_base.matrix(), {}, self_clearance_m=0.0,
+                                           link_clearance_m=0.0, finger_clearance_m=0.0)
         self.lower, self.upper = lower, upper
         # one call, ended by the clock too, as MPlib's
         self.settings = MotionSettings(time_limit_s=time_limit_s, wall_limit_s=time_limit_s, seed=seed, searches=1)
 
     def set_world(self, obstacles, held, opening_m: float) -> None:
-        self.checker.set_obstacles(obstacles)
-        self.checker.hold(held[0] if held else None, held[1] if held else None, opening_m=opening_m)
+        for checker in (self.checker, self.exact):
+            checker.set_obstacles(obstacles)
+            checker.hold(held[0] if held else None, held[1] if held else None, opening_m=opening_m)
 
     def is_valid(self, q: np.ndarray) -> bool:
         return self.checker.is_valid(q)
 
     def collision_words(self, q: np.ndarray) -> str:
-        hit = self.checker.first_collision(q)
+        """What touches what at ``q`` in our model without its clearances, or "free"."""
+        hit = self.exact.first_collision(q)
         return "free" if hit is None else f"{hit.a} / {hit.b}"
 
     def touches(self, q: np.ndarray) -> bool:
-        """Exact contact (FCL's convex-convex test) in our model."""
-        return not self.checker.is_valid(q)
+        """Exact contact (FCL's convex-convex test) in our model, without the clearances its planner keeps."""
+        return not self.exact.is_valid(q)
 
     def plan(self, query: Query) -> np.ndarray | None:
         try:
