@@ -517,11 +517,11 @@ class _Layout:
     def _leaning_grasps(self, name: str, rest_from_part: np.ndarray, grasps: Sequence[Grasp]) -> list[Grasp]:
         """For a board standing on its edge between chocks in this rest pose: ``grasps`` opened wider at the pick
         (``Grasp.pick_opening_m``; at the target as usual: a wide open hand releasing a cabinet's top there met a
-        drawer front) by twice how far its top may move (:func:`standing_lean_m`), so that a finger coming down
-        beside it clears it leaning either way, then by half that (leaning onto one chock, its foot where it
-        stood, as cabinet_13's drawer side did by 6 mm at its top, where a finger with 5 mm to spare came down on
-        it), for where the widest opening meets a neighbour; else none. The same copies each time (the checks
-        cache them)."""
+        drawer front) by twice how far its top may move (:func:`planning.pedestal.standing_lean_m`), so that a
+        finger coming down beside it clears it leaning either way, then by half that (leaning onto one chock, its
+        foot where it stood, as cabinet_13's drawer side did by 6 mm at its top, where a finger with 5 mm to spare
+        came down on it), for where the widest opening meets a neighbour; else none. The same copies each time (the
+        checks cache them)."""
         key = (name, np.round(rest_from_part, 9).tobytes())
         if key not in self.leaning_cache:
             pedestal = self.support_cache.get(key)
