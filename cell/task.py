@@ -59,12 +59,12 @@ from planning.motion import (
     MotionSettings,
     first_invalid_on_line,
     plan_joint_path,
-    straight_line_valid,
 )
 from planning.payload import JointTorques, MassProperties, carry_limits
 from planning.pose import Pose
 from planning.robot_collision import Collision, RobotCollisionChecker, checking_work_s
 from planning.timing import MAX_DEVIATION_RAD, JointLimits, time_path
+from planning.validity import AllValid, ClearExceptNearEnds, Validity, dense_path_valid, with_dense_check
 
 LIFT_M = 0.10  # straight lift after grasping, world +z
 INSERTION_M = 0.08  # straight insertion along the insertion direction into the target
@@ -79,7 +79,6 @@ INSERTION_STEP_M = 0.005
 HELD_MARGIN_M = 0.002  # the held part is checked pulled in by this much, so it may slide along faces it touches
 SQUEEZE_M = 0.004  # the closing command asks for this much less than the part's width (force closure)
 DENSE_CHECK_RAD = 0.004  # joint step of the re-check of planned paths
-TORQUE_CHECK_RAD = 0.05  # joint step of the holding-torque check along a segment (the torques vary slowly)
 IK_ATTEMPTS = 6  # IK solutions tried (each with restarts) for a collision-free contact configuration
 JOINT_LIMIT_MARGIN_RAD = 0.01  # configurations keep this from the joint limits (timed motions must not touch them)
 CARRY_CLEARANCE_M = 0.002  # the carried part is grown by this much on its way to the target ...
@@ -91,7 +90,9 @@ PASSING_CLEARANCE_M = 0.001
 # where no path reaches the pre-grasp (a pocket among the kit's parts and pedestals), the approach starts this much
 # farther back along its axis
 FARTHER_APPROACH_M = 0.08
-NEAR_END_RAD = 0.15  # ... except this close (joint-space distance) to an end that lies closer than that
+# free-space moves and carries keep their clearance except this close (joint-space distance) to an end that lies
+# closer than that to something (planning.validity.ClearExceptNearEnds): a retreat ending near a placed part
+NEAR_END_RAD = 0.15
 # the stages of a part's motions with the hand open for its pick (as wide as the pick's opening, which kitting may
 # widen where a board standing between chocks may lean); every later stage is planned the same whatever that opening
 PICK_STAGES = frozenset({"move to the pick", "grasp at the pick", "approach to the pick", "approach"})
@@ -254,7 +255,7 @@ class CellWorld:
         else:
             self.passing_checker.hold(self._grown(part, self.parts[part], PASSING_CLEARANCE_M),
                                       grasp.part_from_tcp.inverse().matrix(), opening_m=opening_m)
-        return _Validity(self.passing_checker, frozenset())
+        return Validity(self.passing_checker, frozenset())
 
     def validity(self, ignore: frozenset[str] = frozenset(), transit: bool = False,
                  held_ignore: frozenset[str] = frozenset(), hand_ignore: frozenset[str] = frozenset()):
@@ -262,7 +263,7 @@ class CellWorld:
         only those in ``held_ignore`` (the robot must still clear them), and for the hand, fingers and held part
         those in ``hand_ignore`` (the arm's links must still clear them); ``transit``: with every obstacle grown
         by :data:`TRANSIT_CLEARANCE_M`. While a part is held, a configuration must also hold its weight."""
-        return _Validity(self.transit_checker if transit else self.checker, ignore, held_ignore, self._load,
+        return Validity(self.transit_checker if transit else self.checker, ignore, held_ignore, self._load,
                          hand_ignore)
 
     def kit_validity(self, in_kit: frozenset[str]):
@@ -271,7 +272,7 @@ class CellWorld:
         self.kit_checker.set_obstacles({name: (self.parts[name], self.part_poses[name].matrix())
                                         for name in sorted(in_kit) if name in self.part_poses})
         self.kit_checker.hold(None, opening_m=self.checker.opening_m)
-        return _Validity(self.kit_checker, frozenset())
+        return Validity(self.kit_checker, frozenset())
 
     def hold(self, part: str | None, grasp: Grasp | None, opening_m: float,
              margin_m: float = HELD_MARGIN_M) -> None:
@@ -434,22 +435,22 @@ class CellWorld:
         return False
 
     def _collision_words(self, q: np.ndarray, valid=None) -> str:
-        """The first collision at ``q`` as ``valid`` (a :class:`_Validity`) sees it: its checker, skipping what it
+        """The first collision at ``q`` as ``valid`` (a :class:`Validity`) sees it: its checker, skipping what it
         ignores; the exact world when ``valid`` is something else."""
-        if isinstance(valid, _AllValid):  # the first of its checks that refuses q
+        if isinstance(valid, AllValid):  # the first of its checks that refuses q
             refusing = next((check for check in valid.checks if not check(q)), None)
             return "no collision there" if refusing is None else self._collision_words(q, refusing)
-        load = valid.load if isinstance(valid, _Validity) else None
+        load = valid.load if isinstance(valid, Validity) else None
         if load is not None and not load.within(np.asarray(q, dtype=np.float64)[None])[0]:
             return load.words(q)
         hit = self._first_collision(q, valid)
         return "no collision there" if hit is None else str(hit)
 
     def _first_collision(self, q: np.ndarray, valid=None) -> Collision | None:
-        """The first colliding pair at ``q`` as ``valid`` (a :class:`_Validity`) sees it (the exact world when
+        """The first colliding pair at ``q`` as ``valid`` (a :class:`Validity`) sees it (the exact world when
         ``valid`` is something else), the arm's load aside."""
         checker, ignore, held_ignore, hand_ignore = (
-            (valid.checker, valid.ignore, valid.held_ignore, valid.hand_ignore) if isinstance(valid, _Validity)
+            (valid.checker, valid.ignore, valid.held_ignore, valid.hand_ignore) if isinstance(valid, Validity)
             else (self.checker, frozenset(), frozenset(), frozenset()))
         return checker.first_collision(np.asarray(q, dtype=np.float64), ignore=ignore, held_ignore=held_ignore,
                                        hand_ignore=hand_ignore)
@@ -471,74 +472,12 @@ class CellWorld:
                                        work=checking_work_s)
             except MotionPlanningError as exc:
                 raise TaskPlanningError(exc.kind, part, stage, str(exc)) from exc
-            if _dense_path_valid(valid, path, DENSE_CHECK_RAD):
+            if dense_path_valid(valid, path, DENSE_CHECK_RAD):
                 return path
             settings = replace(settings, check_resolution=settings.check_resolution / 4)
             if segment is not None:
-                segment = _with_dense_check(valid)
+                segment = with_dense_check(valid, DENSE_CHECK_RAD)
         raise TaskPlanningError("timeout", part, stage, "every planned path grazes an obstacle between OMPL's checks")
-
-
-def _with_dense_check(valid):
-    """``valid.segment``, each edge also re-checked every :data:`DENSE_CHECK_RAD` as a planned path is."""
-
-    def segment(q_from: np.ndarray, q_to: np.ndarray) -> bool:
-        return bool(valid.segment(q_from, q_to)) and _dense_path_valid(valid, np.stack([q_from, q_to]),
-                                                                      DENSE_CHECK_RAD)
-
-    return segment
-
-
-def _dense_path_valid(valid, path: np.ndarray, step_rad: float) -> bool:
-    """Whether every configuration on the straight joint segments of ``path`` (K, 7), checked every ``step_rad``,
-    is valid; in one batched query where ``valid`` has ``first_invalid``."""
-    first_invalid = getattr(valid, "first_invalid", None)
-    if first_invalid is None:
-        return all(straight_line_valid(valid, a, b, step_rad=step_rad) for a, b in zip(path[:-1], path[1:]))
-    samples = [path[:1]]
-    for a, b in zip(path[:-1], path[1:]):
-        steps = max(1, int(np.ceil(float(np.max(np.abs(b - a))) / step_rad)))
-        samples.append(a + (b - a) * (np.arange(1, steps + 1) / steps)[:, None])
-    return first_invalid(np.concatenate(samples)) is None
-
-
-class _Validity:
-    """``q -> bool`` against a checker's world skipping ``ignore`` (and ``held_ignore`` for the held part only);
-    ``segment(a, b)`` checks a straight joint segment densely (no point of the robot or the held part moves more
-    than 2 mm between checks)."""
-
-    def __init__(self, checker: RobotCollisionChecker, ignore: frozenset[str],
-                 held_ignore: frozenset[str] = frozenset(), load: JointTorques | None = None,
-                 hand_ignore: frozenset[str] = frozenset()) -> None:
-        self.checker, self.ignore, self.held_ignore = checker, frozenset(ignore), frozenset(held_ignore)
-        self.hand_ignore = frozenset(hand_ignore)
-        self.load = load  # the held part's weight: a configuration must also hold it (JointTorques.within)
-
-    def __call__(self, q) -> bool:
-        q = np.asarray(q, dtype=np.float64)
-        return (self.load is None or bool(self.load.within(q[None])[0])) and self.checker.is_valid(
-            q, ignore=self.ignore, held_ignore=self.held_ignore, hand_ignore=self.hand_ignore)
-
-    def segment(self, q_from, q_to) -> bool:
-        q_from, q_to = np.asarray(q_from, dtype=np.float64), np.asarray(q_to, dtype=np.float64)
-        if self.load is not None:
-            steps = max(1, int(np.ceil(float(np.max(np.abs(q_to - q_from))) / TORQUE_CHECK_RAD)))
-            if not np.all(self.load.within(q_from + (q_to - q_from) * (np.arange(steps + 1) / steps)[:, None])):
-                return False
-        return self.checker.segment_valid(q_from, q_to, ignore=self.ignore, held_ignore=self.held_ignore,
-                                          hand_ignore=self.hand_ignore)
-
-    def first_invalid(self, qs) -> int | None:
-        """Index of the first invalid configuration of ``qs`` (N, 7), or None: the same answers as calling this
-        object on each, with forward kinematics and the broad phase batched."""
-        qs = np.asarray(qs, dtype=np.float64)
-        end = len(qs)
-        if self.load is not None:
-            heavy = np.flatnonzero(~self.load.within(qs))
-            end = int(heavy[0]) if len(heavy) else end
-        found = self.checker.first_invalid(qs[:end], ignore=self.ignore, held_ignore=self.held_ignore,
-                                           hand_ignore=self.hand_ignore)
-        return found if found is not None else (end if end < len(qs) else None)
 
 
 def _approach_to_pick(world: CellWorld, task: PartTask, q: np.ndarray):
@@ -583,60 +522,18 @@ def _farther_approach(world: CellWorld, task: PartTask, approach_path: np.ndarra
     return np.concatenate([line[::-1], approach_path[1:]])
 
 
-class _ClearExceptNearEnds:
-    """``q -> bool`` for free-space moves whose ends lie closer to something than the transit clearance (a
-    retreat that ends near a placed part): the exact check within ``radius_rad`` (joint-space distance) of either
-    end, the check with clearance everywhere else. Before, such a move was planned without clearance all the way,
-    and a link could graze a kitting part in mid-air."""
-
-    def __init__(self, clear, exact, ends: tuple[np.ndarray, ...], radius_rad: float = NEAR_END_RAD) -> None:
-        self.clear, self.exact, self.radius_rad = clear, exact, radius_rad
-        self.ends = np.array(ends, dtype=np.float64)
-
-    def __call__(self, q) -> bool:
-        if self.clear(q):
-            return True
-        near = float(np.min(np.linalg.norm(self.ends - np.asarray(q, dtype=np.float64), axis=1))) <= self.radius_rad
-        return near and self.exact(q)
-
-    def first_invalid(self, qs) -> int | None:
-        """Index of the first configuration of ``qs`` (N, 7) this object rejects, or None (batched)."""
-        qs = np.asarray(qs, dtype=np.float64)
-        start = 0
-        while (found := self.clear.first_invalid(qs[start:])) is not None:
-            index = start + found
-            if not self(qs[index]):
-                return index
-            start = index + 1
-        return None
-
-
-class _AllValid:
-    """``q -> bool``: valid for every one of ``checks`` (each a :class:`_Validity` or alike, with ``first_invalid``)."""
-
-    def __init__(self, *checks) -> None:
-        self.checks = checks
-
-    def __call__(self, q) -> bool:
-        return all(check(q) for check in self.checks)
-
-    def first_invalid(self, qs) -> int | None:
-        found = [k for k in (check.first_invalid(qs) for check in self.checks) if k is not None]
-        return min(found) if found else None
-
-
 def _among_neighbours_validity(world: CellWorld, task: PartTask, exact, ends: tuple[np.ndarray, ...],
                                off_neighbours: bool = False):
     """Validity for a carry whose ends lie closer to the part's neighbours than the carry clearance: ``exact``
     (the part held as it is, or pulled in by :data:`HELD_MARGIN_M`) everywhere, and the transit clearance from
     everything but the parts ``task``'s part touches at its target (``off_neighbours``: from those too), except
-    within :data:`NEAR_END_RAD` of the ``ends`` (see :class:`_ClearExceptNearEnds`; the hold must stay as it is
+    within :data:`NEAR_END_RAD` of the ``ends`` (see :class:`ClearExceptNearEnds`; the hold must stay as it is
     while it is used). Away from the ends the part, as it is, keeps :data:`PASSING_CLEARANCE_M` from its neighbours
     too."""
     clear = world.validity(transit=True, ignore=frozenset() if off_neighbours else frozenset(task.touches_at_target))
     if off_neighbours:
-        return _ClearExceptNearEnds(_AllValid(clear, exact), exact, ends)
-    return _ClearExceptNearEnds(_AllValid(clear, exact, world.passing_validity()), exact, ends)
+        return ClearExceptNearEnds(AllValid(clear, exact), exact, ends, NEAR_END_RAD)
+    return ClearExceptNearEnds(AllValid(clear, exact, world.passing_validity()), exact, ends, NEAR_END_RAD)
 
 
 def _no_clearance_validity(world: CellWorld, exact, ends: tuple[np.ndarray, ...]):
@@ -645,7 +542,7 @@ def _no_clearance_validity(world: CellWorld, exact, ends: tuple[np.ndarray, ...]
     keeps :data:`PASSING_CLEARANCE_M` from everything, as :func:`_among_neighbours_validity` has it pass its
     neighbours. Checked pulled in all the way, the procedural table_6's shelf, carried this way past a leg it touches
     at its target once its searches were seeded per query, could have passed up to 2 mm into it in mid-carry."""
-    return _ClearExceptNearEnds(_AllValid(exact, world.passing_validity()), exact, ends)
+    return ClearExceptNearEnds(AllValid(exact, world.passing_validity()), exact, ends, NEAR_END_RAD)
 
 
 def _retreat_validity(world: CellWorld, placed: str, in_kit: frozenset[str]):
@@ -654,16 +551,16 @@ def _retreat_validity(world: CellWorld, placed: str, in_kit: frozenset[str]):
     in the kit (``in_kit``): cabinet_17's shelf_1 retreated 1.5-2 mm from side_left lying in the kit, and link 6
     grazed it in the simulator. (The transit clearance, 3 mm on top of the exact check's, was too much: a chair's
     stretcher retreating 3-3.5 mm from a part in the kit had no other grasp.)"""
-    return _AllValid(world.validity(hand_ignore=frozenset({placed})), world.kit_validity(in_kit))
+    return AllValid(world.validity(hand_ignore=frozenset({placed})), world.kit_validity(in_kit))
 
 
 def _free_space_validity(world: CellWorld, start_q: np.ndarray, goal_q: np.ndarray):
     """Validity for a move of the empty hand from ``start_q`` to ``goal_q``: with the transit clearance, relaxed
-    near an end that lies closer than that to something (see :class:`_ClearExceptNearEnds`)."""
+    near an end that lies closer than that to something (see :class:`ClearExceptNearEnds`)."""
     clear = world.validity(transit=True)
     if clear(start_q) and clear(goal_q):
         return clear
-    return _ClearExceptNearEnds(clear, world.validity(), (start_q, goal_q))
+    return ClearExceptNearEnds(clear, world.validity(), (start_q, goal_q), NEAR_END_RAD)
 
 
 def _timed(world: CellWorld, path: np.ndarray, valid, part: str, stage: str,

@@ -29,7 +29,6 @@ from cell.task import (
     PartTask,
     TaskPlanningError,
     _among_neighbours_validity,
-    _dense_path_valid,
     _insertion,
     _insertion_limits,
     _lead_in,
@@ -45,6 +44,7 @@ from planning.motion import MotionSettings
 from planning.pose import Pose
 from planning.robot_collision import LINK_CLEARANCE_M
 from planning.timing import time_path
+from planning.validity import dense_path_valid
 
 BAR = trimesh.creation.box((0.008, 0.19, 0.02))  # a side stretcher (x thin, y long), metres
 CROSS = trimesh.creation.box((0.18, 0.008, 0.02))  # the middle stretcher butting onto it (+x side)
@@ -499,10 +499,10 @@ def test_a_path_that_grazes_between_the_edge_checks_is_planned_around_it(panda):
     world = world_with(panda, {})
     start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
     goal = start + np.array([0.4, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-    assert SteppingOver().segment(start, goal) and not _dense_path_valid(SteppingOver(), np.stack([start, goal]),
+    assert SteppingOver().segment(start, goal) and not dense_path_valid(SteppingOver(), np.stack([start, goal]),
                                                                         DENSE_CHECK_RAD)
     path = world.transit(start, goal, SteppingOver(), "bar", "test")
-    assert len(path) > 2 and _dense_path_valid(SteppingOver(), path, DENSE_CHECK_RAD)
+    assert len(path) > 2 and dense_path_valid(SteppingOver(), path, DENSE_CHECK_RAD)
     np.testing.assert_allclose(path[[0, -1]], [start, goal])
 
 
