@@ -264,7 +264,7 @@ class CellWorld:
         those in ``hand_ignore`` (the arm's links must still clear them); ``transit``: with every obstacle grown
         by :data:`TRANSIT_CLEARANCE_M`. While a part is held, a configuration must also hold its weight."""
         return Validity(self.transit_checker if transit else self.checker, ignore, held_ignore, self._load,
-                         hand_ignore)
+                        hand_ignore)
 
     def kit_validity(self, in_kit: frozenset[str]):
         """``q -> bool``: the empty hand, opened as it is now, and the arm keep :data:`RETREAT_KIT_CLEARANCE_M` from

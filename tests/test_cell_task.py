@@ -500,7 +500,7 @@ def test_a_path_that_grazes_between_the_edge_checks_is_planned_around_it(panda):
     start = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8])
     goal = start + np.array([0.4, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     assert SteppingOver().segment(start, goal) and not dense_path_valid(SteppingOver(), np.stack([start, goal]),
-                                                                        DENSE_CHECK_RAD)
+                                                                       DENSE_CHECK_RAD)
     path = world.transit(start, goal, SteppingOver(), "bar", "test")
     assert len(path) > 2 and dense_path_valid(SteppingOver(), path, DENSE_CHECK_RAD)
     np.testing.assert_allclose(path[[0, -1]], [start, goal])
