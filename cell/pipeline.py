@@ -332,8 +332,8 @@ class Pipeline:
                                                 "pick_opening_m": slot.grasp.opening_at_pick_m}
         self.report["trajectory_duration_s"] = plan.program.duration_s
         built = " built upside down," if upside_down else ""
-        self.console.say(f"[6/8] timing:{built} a {plan.program.duration_s:.1f} s robot program, within the Panda's "
-                         "joint limits")
+        self.console.say(f"[6/8] timing:{built} a {plan.program.duration_s:.1f} s robot program, within the "
+                         f"{self.scene.robot.limits.description}'s published limits")
 
     def _check_limits(self) -> None:
         from cell.program import CSV_RATE_HZ, LimitViolation, check_limits
@@ -341,7 +341,7 @@ class Pipeline:
         samples = self.plan.program.sample(CSV_RATE_HZ)
         lower, upper = self.plan.joint_limits
         try:
-            check_limits(samples, lower, upper)
+            check_limits(samples, lower, upper, self.scene.robot.limits)
         except LimitViolation as exc:
             raise StageFailed(EXIT_PLANNING, "timing", f"the timed program breaks a limit: {exc}") from exc
         self.samples = samples  # only a program within the limits is exported
@@ -357,7 +357,7 @@ class Pipeline:
                  for t in plan.tasks]
         static = [StaticBody(o.name, o.mesh, o.world_from_obstacle) for o in plan.static]
         settings = SimSettings(record_every_s=None if self.args.no_animation else ANIMATION_FRAME_S,
-                               density_kg_m3=self.density_kg_m3)
+                               density_kg_m3=self.density_kg_m3, robot_model=self.scene.robot.model)
         with self.console.stage("simulation", f"PyBullet physics at {settings.rate_hz:.0f} Hz, "
                                               f"{plan.program.duration_s:.0f} s of robot motion"):
             bar = self.console.bar(100, "%")
@@ -390,7 +390,7 @@ class Pipeline:
 
         if self.plan is not None and self.samples is not None:
             lower, upper = self.plan.joint_limits
-            write_exports(self.plan.program, folder, lower, upper, self.samples)
+            write_exports(self.plan.program, folder, lower, upper, self.samples, self.scene.robot.limits)
         if self.target is not None:
             final = None
             if self.simulation is not None:

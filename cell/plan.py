@@ -104,7 +104,7 @@ class CellPlan:
     slots: list[KittingSlot]
     tasks: list[PartTask]
     task_plan: TaskPlan
-    joint_limits: tuple[np.ndarray, np.ndarray]  # lower, upper (rad), from the robot's URDF
+    joint_limits: tuple[np.ndarray, np.ndarray]  # lower, upper (rad): the real arm's published ranges
     seconds: dict[str, float] = field(default_factory=dict)
     jig_turn_deg: float = 0.0  # how far the jig was turned from the scene's pose to make the plan work
     jig_slide_m: float = 0.0  # how far the jig was slid toward the robot from the scene's pose (m)
@@ -764,7 +764,7 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
     targets = {p.name: world_from_assembly @ p.assembly_from_part for p in assembly.parts}
 
     with BulletClient() as client:
-        panda = Panda(client, scene.robot.world_from_base, scene.robot.urdf)
+        panda = Panda(client, scene.robot.world_from_base, scene.robot.urdf, scene.robot.limits)
 
         # --- kitting: a grasp that works at the pick and at the target ----------------------------------------
         on_stage("kitting")
@@ -848,7 +848,7 @@ def _plan_with_jig(scene: Scene, assembly: Assembly, sequence: SequenceResult, s
                                      alternatives=tuple(options[s.part][1:])) for s in slots]
         seconds["timing"] = timing_seconds
         seconds["motion"] = time.perf_counter() - started - timing_seconds
-        limits = (panda.lower_limits.copy(), panda.upper_limits.copy())
+        limits = (panda.limits.lower_rad.copy(), panda.limits.upper_rad.copy())
     return CellPlan(world_from_assembly, static, slots, tasks, task_plan, limits, seconds, sequence=sequence)
 
 

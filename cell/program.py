@@ -13,7 +13,7 @@ Exports (documented in the README):
   ``positions``, ``velocities``, ``accelerations``, ``time_from_start`` as ``{"sec", "nanosec"}``, sampled at
   :data:`JSON_RATE_HZ`); a gripper step holds ``width_m`` and ``duration_s``.
 
-Both are checked against the Panda's limits before anything is written (:func:`check_limits`).
+Both are checked against the real arm's published limits before anything is written (:func:`check_limits`).
 """
 
 from __future__ import annotations
@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cell.robot import ACCELERATION_LIMITS, ARM_JOINTS, VELOCITY_LIMITS
+from cell.robot import ARM_JOINTS
+from planning.robot_limits import PANDA, RobotLimits
 from planning.timing import TimedPath
 
 CSV_RATE_HZ = 1000.0
@@ -89,13 +90,15 @@ class LimitViolation(ValueError):
     """The program exceeds a joint limit; the message names the joint, the quantity, the time and the value."""
 
 
-def check_limits(samples: dict[str, np.ndarray], lower: np.ndarray, upper: np.ndarray) -> None:
-    """Raise :class:`LimitViolation` at the first sample outside the position, velocity or acceleration limits."""
+def check_limits(samples: dict[str, np.ndarray], lower: np.ndarray, upper: np.ndarray,
+                 arm: RobotLimits = PANDA) -> None:
+    """Raise :class:`LimitViolation` at the first sample outside the position range (``lower``, ``upper``; rad) or
+    the real arm's published velocity or acceleration limits (``arm``, :mod:`planning.robot_limits`)."""
     checks = [
         ("position", samples["q"] - upper[None], "above its upper limit"),
         ("position", lower[None] - samples["q"], "below its lower limit"),
-        ("velocity", np.abs(samples["qd"]) - VELOCITY_LIMITS[None] * (1 + LIMIT_TOLERANCE), "over its limit"),
-        ("acceleration", np.abs(samples["qdd"]) - ACCELERATION_LIMITS[None] * (1 + LIMIT_TOLERANCE),
+        ("velocity", np.abs(samples["qd"]) - arm.velocity_rad_s[None] * (1 + LIMIT_TOLERANCE), "over its limit"),
+        ("acceleration", np.abs(samples["qdd"]) - arm.acceleration_rad_s2[None] * (1 + LIMIT_TOLERANCE),
          "over its limit"),
     ]
     for quantity, excess, words in checks:
@@ -138,11 +141,12 @@ def program_json(program: Program) -> dict:
 
 
 def write_exports(program: Program, folder: Path, lower: np.ndarray, upper: np.ndarray,
-                  samples: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
-    """Check the limits, then write ``trajectory.csv`` and ``program.json`` into ``folder``; returns the samples.
-    ``samples``: ``program.sample(CSV_RATE_HZ)`` when the caller has it already (they are checked again)."""
+                  samples: dict[str, np.ndarray] | None = None, arm: RobotLimits = PANDA) -> dict[str, np.ndarray]:
+    """Check the limits (:func:`check_limits`), then write ``trajectory.csv`` and ``program.json`` into ``folder``;
+    returns the samples. ``samples``: ``program.sample(CSV_RATE_HZ)`` when the caller has it already (they are
+    checked again)."""
     samples = program.sample(CSV_RATE_HZ) if samples is None else samples
-    check_limits(samples, lower, upper)
+    check_limits(samples, lower, upper, arm)
     folder.mkdir(parents=True, exist_ok=True)
     header = (["t"] + [f"q_{n}" for n in ARM_JOINTS] + [f"qd_{n}" for n in ARM_JOINTS]
               + [f"qdd_{n}" for n in ARM_JOINTS] + ["gripper_width"])

@@ -15,12 +15,13 @@ import pybullet_data
 from planning import panda_ik
 from planning.pose import Pose
 from planning.robot_collision import ARM_JOINTS, FINGER_JOINTS, TCP_LINK
+from planning.robot_limits import PANDA, RobotLimits
 
 HAND_LINK = "panda_hand"
-# Franka's published limits (rad/s, rad/s^2, rad/s^3), joints 1-7
-VELOCITY_LIMITS = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
-ACCELERATION_LIMITS = np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])
-JERK_LIMITS = np.array([7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0])
+# the Panda's published limits (rad/s, rad/s^2, rad/s^3), joints 1-7 (planning/robot_limits.py)
+VELOCITY_LIMITS = PANDA.velocity_rad_s
+ACCELERATION_LIMITS = PANDA.acceleration_rad_s2
+JERK_LIMITS = PANDA.jerk_rad_s3
 CARTESIAN_STEP_M = 0.02  # inverse kinematics every this much along straight TCP lines
 MAX_JOINT_STEP_RAD = 0.35  # larger jumps between neighbouring straight-line solutions mean a branch switch
 
@@ -71,11 +72,18 @@ class IKSettings:
 
 
 class Panda:
-    """A Panda loaded into an existing PyBullet client ``client`` (a :class:`cell.bullet.BulletClient`)."""
+    """A Panda loaded into an existing PyBullet client ``client`` (a :class:`cell.bullet.BulletClient`).
 
-    def __init__(self, client, world_from_base: Pose, urdf: str = "franka_panda/panda.urdf") -> None:
+    ``limits``: the real arm's published limits (:mod:`planning.robot_limits`; the Panda's by default, or the FR3's,
+    whose kinematics are the Panda's). ``lower_limits`` / ``upper_limits`` (rad) are what inverse kinematics and the
+    planner keep within: the datasheet ranges less their margin, inside the URDF's (``sim_lower_limits`` /
+    ``sim_upper_limits``, the simulation model's own, which are wider than a real arm accepts)."""
+
+    def __init__(self, client, world_from_base: Pose, urdf: str = "franka_panda/panda.urdf",
+                 limits: RobotLimits = PANDA) -> None:
         self.pb, self.cid = client.pb, client.client_id
         self.world_from_base = world_from_base
+        self.limits = limits
         position, orientation = world_from_base.to_pybullet()
         self.body = self.pb.loadURDF(f"{pybullet_data.getDataPath()}/{urdf}", position, orientation,
                                      useFixedBase=True, flags=self.pb.URDF_USE_SELF_COLLISION,
@@ -92,8 +100,9 @@ class Panda:
         self.tcp_link = names[TCP_LINK]
         self.hand_link = names[HAND_LINK]
         infos = [self.pb.getJointInfo(self.body, j, physicsClientId=self.cid) for j in self.arm]
-        self.lower_limits = np.array([i[8] for i in infos])
-        self.upper_limits = np.array([i[9] for i in infos])
+        self.sim_lower_limits = np.array([i[8] for i in infos])
+        self.sim_upper_limits = np.array([i[9] for i in infos])
+        self.lower_limits, self.upper_limits = limits.planning_range(self.sim_lower_limits, self.sim_upper_limits)
         self._arm_columns = [self._movable.index(j) for j in self.arm]
         # the TCP link's frame origin in its centre-of-mass frame, where calculateJacobian takes its point
         _, _, com_position, com_orientation, _, _ = self.pb.getLinkState(self.body, self.tcp_link,

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from planning.payload import PANDA_PAYLOAD_KG
 from planning.pose import Pose
+from planning.robot_limits import DATASHEET_MARGIN_RAD, ROBOT_MODELS, RobotLimits
 from scenes import scenes_root
 
 DEFAULT_SCENE = "cell.toml"
@@ -24,10 +25,18 @@ class SceneError(ValueError):
 
 @dataclass(frozen=True)
 class RobotConfig:
+    """``urdf``: the simulation model (pybullet_data's Panda); ``model``: the real arm whose published limits the
+    program keeps within (``panda`` or ``fr3``, :mod:`planning.robot_limits`)."""
+
     urdf: str
     world_from_base: Pose
     home_q: tuple[float, ...]
     payload_kg: float = PANDA_PAYLOAD_KG  # the heaviest part the arm may carry
+    model: str = "panda"
+
+    @property
+    def limits(self) -> RobotLimits:
+        return ROBOT_MODELS[self.model]
 
 
 @dataclass(frozen=True)
@@ -147,15 +156,26 @@ def load_scene(path: str | Path | None = None) -> Scene:
     urdf = r.section("robot").get("urdf")
     if not isinstance(urdf, str) or not urdf:
         raise SceneError(f"{path}: [robot] urdf must be a path inside pybullet_data or the scene folder")
+    model = r.section("robot").get("model", "panda")
+    if model not in ROBOT_MODELS:
+        raise SceneError(f"{path}: [robot] model must be one of {', '.join(sorted(ROBOT_MODELS))} (the real arm whose "
+                         f"published limits the program keeps within), got {model!r}")
     seed = data.get("random_seed", 0)
     if not isinstance(seed, int) or isinstance(seed, bool):
         raise SceneError(f"{path}: random_seed must be an integer, got {seed!r}")
+    home_q = r.numbers("robot", "home_q", 7)
+    limits = ROBOT_MODELS[model]
+    for j, value in enumerate(home_q):
+        if not limits.lower_rad[j] + DATASHEET_MARGIN_RAD <= value <= limits.upper_rad[j] - DATASHEET_MARGIN_RAD:
+            raise SceneError(f"{path}: [robot] home_q: joint {j + 1} at {value:g} rad lies outside the "
+                             f"{limits.description}'s range {limits.lower_rad[j]:g}..{limits.upper_rad[j]:g} rad (less "
+                             f"{DATASHEET_MARGIN_RAD:g} rad at each end)")
     width = r.number("camera", "width_px", positive=True)
     height = r.number("camera", "height_px", positive=True)
     return Scene(
-        robot=RobotConfig(urdf, r.pose("robot", "world_from_base"), r.numbers("robot", "home_q", 7),
+        robot=RobotConfig(urdf, r.pose("robot", "world_from_base"), home_q,
                           r.number("robot", "payload_kg", positive=True) if "payload_kg" in r.section("robot")
-                          else PANDA_PAYLOAD_KG),
+                          else ROBOT_MODELS[model].payload_kg, model),
         table=TableConfig(r.number("table", "top_z"), r.numbers("table", "size", 3),
                           r.numbers("table", "centre_xy", 2)),
         fixture=FixtureConfig(r.pose("fixture", "world_from_assembly"), r.flag("fixture", "upside_down", True)),

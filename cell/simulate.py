@@ -76,7 +76,7 @@ from cell.bodies import add_convex_body
 from cell.bullet import BulletClient
 from cell.frames import CellPictures, CellSnapshot, FrameRecorder
 from cell.program import GripperStep, MotionStep, Program
-from cell.robot import VELOCITY_LIMITS, Panda
+from cell.robot import Panda
 from cell.scene import CameraConfig
 from cell.sim_result import ContactEvent, GraspFailure, LimitEvent, PartResult, SimulationResult
 from cell.symmetry import part_symmetry, position_error_m, rotation_error_deg
@@ -90,6 +90,7 @@ from planning.payload import (
 )
 from planning.pose import Pose
 from planning.robot_collision import ALLOWED_SELF_PAIRS, ARM_JOINTS
+from planning.robot_limits import robot_limits
 
 FIXTURE = "fixture"  # the name in ``fasten_to`` that stands for the jig (the static bodies under the target)
 MIN_RATE_HZ = 240.0
@@ -182,6 +183,7 @@ class SimSettings:
     record_every_s: float | None = None  # simulated seconds between animation frames; None: no frames
     camera: CameraConfig = DEFAULT_CAMERA  # for the frames
     urdf: str = "franka_panda/panda.urdf"  # inside pybullet_data
+    robot_model: str = "panda"  # the real arm whose published limits the program must keep (planning/robot_limits.py)
 
     def __post_init__(self) -> None:
         if not self.rate_hz >= MIN_RATE_HZ:
@@ -240,7 +242,7 @@ class _Cell:
                  world_from_robot_base: Pose, settings: SimSettings) -> None:
         self.pb, self.cid = client.pb, client.client_id
         self.settings = settings
-        self.panda = Panda(client, world_from_robot_base, settings.urdf)
+        self.panda = Panda(client, world_from_robot_base, settings.urdf, robot_limits(settings.robot_model))
         self.robot = self.panda.body
         self.link_names = {-1: self.pb.getBodyInfo(self.robot, physicsClientId=self.cid)[0].decode()}
         for j in range(self.pb.getNumJoints(self.robot, physicsClientId=self.cid)):
@@ -620,16 +622,16 @@ class _Run:
                                    | self.pb.ACTIVATION_STATE_WAKE_UP, physicsClientId=self.cid)
 
     def _check_limits(self, role: _StepRole) -> None:
-        panda, s = self.cell.panda, self.settings
+        s, arm = self.settings, self.cell.panda.limits  # the real arm's published limits
         q, qd = self.arm_q, self.arm_qd
-        for j in np.flatnonzero((q < panda.lower_limits - s.joint_limit_margin_rad)
-                                | (q > panda.upper_limits + s.joint_limit_margin_rad)):
-            bound = panda.lower_limits[j] if q[j] < panda.lower_limits[j] else panda.upper_limits[j]
+        for j in np.flatnonzero((q < arm.lower_rad - s.joint_limit_margin_rad)
+                                | (q > arm.upper_rad + s.joint_limit_margin_rad)):
+            bound = arm.lower_rad[j] if q[j] < arm.lower_rad[j] else arm.upper_rad[j]
             self.limits.see((j, "position"), self.time_s, role.label, abs(q[j] - bound), joint=ARM_JOINTS[j],
                             quantity="position", limit=float(bound), peak=float(q[j]))
-        for j in np.flatnonzero(np.abs(qd) > VELOCITY_LIMITS * (1.0 + s.velocity_tolerance)):
+        for j in np.flatnonzero(np.abs(qd) > arm.velocity_rad_s * (1.0 + s.velocity_tolerance)):
             self.limits.see((j, "velocity"), self.time_s, role.label, abs(qd[j]), joint=ARM_JOINTS[j],
-                            quantity="velocity", limit=float(np.copysign(VELOCITY_LIMITS[j], qd[j])),
+                            quantity="velocity", limit=float(np.copysign(arm.velocity_rad_s[j], qd[j])),
                             peak=float(qd[j]))
 
     def _held_may_touch(self, role: _StepRole) -> frozenset[str]:

@@ -117,6 +117,14 @@ PANDA_LIMITS = JointLimits(LIMIT_FRACTION * VELOCITY_LIMITS, LIMIT_FRACTION * AC
                            LIMIT_FRACTION * JERK_LIMITS)
 
 
+def timing_limits(panda: Panda) -> JointLimits:
+    """The limits motions of ``panda`` are timed within: :data:`LIMIT_FRACTION` of its real arm's published velocity,
+    acceleration and jerk limits (``panda.limits``, :mod:`planning.robot_limits`)."""
+    arm = panda.limits
+    return JointLimits(LIMIT_FRACTION * arm.velocity_rad_s, LIMIT_FRACTION * arm.acceleration_rad_s2,
+                       LIMIT_FRACTION * arm.jerk_rad_s3)
+
+
 class TaskPlanningError(RuntimeError):
     """A pick or place could not be planned. ``kind``: no_ik, start_in_collision, goal_in_collision, timeout,
     straight_line_blocked; ``part`` and ``stage`` name where."""
@@ -564,12 +572,14 @@ def _free_space_validity(world: CellWorld, start_q: np.ndarray, goal_q: np.ndarr
 
 
 def _timed(world: CellWorld, path: np.ndarray, valid, part: str, stage: str,
-           limits: JointLimits = PANDA_LIMITS, stops: Sequence[int] = (),
+           limits: JointLimits | None = None, stops: Sequence[int] = (),
            max_deviation_rad: float = MAX_DEVIATION_RAD):
-    """Time a joint path with Ruckig within ``limits`` and the joints' position limits, at rest at the waypoints
+    """Time a joint path with Ruckig within ``limits`` (default: :func:`timing_limits` of the arm) and the joints'
+    position limits, at rest at the waypoints
     indexed by ``stops``, its blends within ``max_deviation_rad`` of the path (adds the seconds spent to
     ``world.timing_seconds``)."""
     started = time.perf_counter()
+    limits = timing_limits(world.panda) if limits is None else limits
     kept = _kept(path)
     path = np.asarray(path)[kept]
     stops = [kept.index(k) for k in stops if k in kept and 0 < kept.index(k) < len(kept) - 1]
@@ -641,10 +651,11 @@ def _plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray, pro
     world.set_part_poses(poses)
 
     def add_motion(part: str, label: str, path: np.ndarray, valid, held: str | None,
-                   limits: JointLimits = PANDA_LIMITS) -> None:
+                   limits: JointLimits | None = None) -> None:
         program.steps.append(MotionStep(f"{part}: {label}", _timed(world, path, valid, part, label, limits), held))
 
     opening = program.initial_width_m
+    arm_limits = timing_limits(world.panda)
     for index in range(first, len(tasks)):
         task = tasks[index]
         name, grasp = task.part, task.grasp
@@ -654,7 +665,7 @@ def _plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray, pro
             opening = _opening_after_retreat(world, program, q, tasks[index - 1].grasp.opening_m,
                                              grasp.opening_at_pick_m, "open for the next part")
         # a heavy part is carried slower (the wrist's torque, planning/payload.py)
-        carrying = PANDA_LIMITS if task.payload is None else carry_limits(PANDA_LIMITS, task.payload,
+        carrying = arm_limits if task.payload is None else carry_limits(arm_limits, task.payload,
                                                                           grasp.part_from_tcp)
         if time.thread_time() > deadline:
             raise TaskPlanningError("timeout", name, "planning", "the planning time budget ran out")

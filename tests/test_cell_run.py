@@ -21,9 +21,12 @@ from perception.synth import generate
 from planning.assembly import write_assembly
 from planning.collision import MAX_FITTING_OVERLAP_M
 
-# Franka's published limits, written out here on purpose (not imported from the code under test)
+# Franka's published Panda (FER) limits, written out here on purpose (not imported from the code under test):
+# joint position ranges from its datasheet, which are narrower than pybullet_data's panda.urdf
 VELOCITY = [2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61]
 ACCELERATION = [15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0]
+DATASHEET_LOWER = [-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973]
+DATASHEET_UPPER = [2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973]
 
 
 @pytest.fixture(scope="module")
@@ -92,6 +95,9 @@ def test_exported_trajectory_respects_the_panda_limits(run_with_poses):
     np.testing.assert_allclose(np.diff(t), 1e-3, atol=1e-6)  # 1 kHz
     lower, upper = urdf_position_limits()
     assert np.all(q >= lower - 1e-6) and np.all(q <= upper + 1e-6)
+    # inside what a real Panda accepts, with 0.01 rad to spare at every sample
+    assert np.all(q >= np.array(DATASHEET_LOWER) + 0.01 - 1e-9), q.min(axis=0)
+    assert np.all(q <= np.array(DATASHEET_UPPER) - 0.01 + 1e-9), q.max(axis=0)
     assert np.all(np.abs(qd) <= np.array(VELOCITY) * (1 + 1e-6))
     assert np.all(np.abs(qdd) <= np.array(ACCELERATION) * (1 + 1e-6))
     assert np.all((width >= 0) & (width <= 0.08 + 1e-9))
