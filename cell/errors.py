@@ -4,6 +4,7 @@ so that ``python -m cell.run``, which runs as ``__main__``, catches the same cla
 from __future__ import annotations
 
 EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT, EXIT_PLANNING, EXIT_SIMULATION = 0, 1, 2, 3, 4
+EXIT_DISAGREES = 5  # a run from a picture whose predicted assembly does not match the picture: nothing planned
 
 
 class BadInput(Exception):
@@ -11,7 +12,8 @@ class BadInput(Exception):
 
 
 class StageFailed(Exception):
-    """Exit 3 (planning) or 4 (simulation check) after a stage ran and failed; the report is still written."""
+    """Exit 3 (planning), 4 (simulation check) or 5 (the prediction disagrees with the picture) after a stage ran
+    and failed; the report is still written."""
 
     def __init__(self, exit_code: int, stage: str, message: str, part: str | None = None) -> None:
         super().__init__(message)

@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from cell.errors import EXIT_OK, EXIT_PLANNING, EXIT_SIMULATION, BadInput, StageFailed
+from cell.errors import EXIT_DISAGREES, EXIT_OK, EXIT_PLANNING, EXIT_SIMULATION, BadInput, StageFailed
 from cell.inputs import Parts
 from cell.report import assembly_with_poses, pose_json
 from cell.scene import Scene
@@ -22,6 +22,7 @@ from planning.collision import MAX_FITTING_OVERLAP_M
 from planning.payload import DEFAULT_DENSITY_KG_M3
 from planning.pose import Pose
 
+MIN_SILHOUETTE_IOU = 0.80  # a predicted assembly agrees with its picture from this silhouette IoU on (RESULTS.md)
 REPAIR_GIVEN_POSES = False  # given (--poses) targets are taken as they are; predicted ones are repaired
 MAX_BELOW_FLOOR_M = 0.001  # given targets may reach this far under the floor (z = 0; rounding, a model's feet)
 ANIMATION_FRAME_S = 0.4  # simulated seconds between the frames of animation.gif
@@ -62,6 +63,8 @@ class Pipeline:
         self.part_density_kg_m3 = {name: self.given_density_kg_m3.get(name, self.density_kg_m3)
                                    for name in parts.names}
         self.target: Assembly | None = None
+        self.prediction = None  # perception.predict.Prediction, for a run from a picture
+        self.agreement = None  # perception.agreement.PictureAgreement of the repaired targets with the picture
         self.plan = None
         self.world_from_target: Pose | None = None  # the target's assembly frame on the jig, once planned
         self.simulation = None
@@ -79,6 +82,8 @@ class Pipeline:
             with self.console.stage("perception", "poses from the image"):
                 poses = self._predict()
         self.set_targets(poses)
+        if self.prediction is not None:
+            self._check_picture_agreement()
 
     def set_targets(self, poses: dict[str, Pose]) -> None:
         """The target assembly from every part's pose (assembly frame, metres): given poses checked for overlaps,
@@ -133,10 +138,57 @@ class Pipeline:
         except PredictionError as exc:
             raise BadInput(str(exc)) from exc
         self.report["perception"] = prediction.summary()
+        self.prediction = prediction
+        from perception.agreement import MAX_PIXEL_NOISE, holds_an_object, object_mask, pixel_noise
+
+        where = self.args.image
+        noise = pixel_noise(self.image)
+        if noise > MAX_PIXEL_NOISE:
+            raise BadInput(f"{where}: the picture looks like noise (neighbouring pixels differ by {noise:.0f} of 255 "
+                           f"on median, a photo by a few); give a picture of the assembled object")
+        mask, source = object_mask(self.image, prediction.foreground)
+        self.object_mask, self.report["perception"]["object_mask"] = mask, source
+        if not holds_an_object(mask):
+            raise BadInput(f"{where}: no object found in the picture (it covers {100 * mask.mean():.1f}% of it, by "
+                           f"the {source}); give a picture of the assembled object, filling much of the frame")
         for name in self.parts.names:
             self.entries[name]["predicted_camera_from_part"] = pose_json(prediction.camera_from_part[name])
             self.entries[name]["predicted_assembly_from_part"] = pose_json(prediction.assembly_from_part[name])
         return dict(prediction.assembly_from_part)
+
+    def _check_picture_agreement(self) -> None:
+        """The repaired targets drawn with the picture's camera against the object in the picture
+        (:mod:`perception.agreement`); below :data:`MIN_SILHOUETTE_IOU` the run stops (exit 5) unless
+        ``--accept-prediction`` asks to build it anyway."""
+        from perception.agreement import picture_agreement
+
+        camera_from_assembly = self.prediction.camera_from_assembly
+        agreement = picture_agreement(self.object_mask, self.target.part_names,
+                                      [p.mesh for p in self.target.parts],
+                                      [camera_from_assembly @ p.assembly_from_part for p in self.target.parts])
+        self.agreement = agreement
+        agrees = agreement.silhouette_iou >= MIN_SILHOUETTE_IOU
+        accepted = bool(getattr(self.args, "accept_prediction", False))
+        self.report["picture_agreement"] = {**agreement.to_dict(), "min_silhouette_iou": MIN_SILHOUETTE_IOU,
+                                            "agrees": agrees, "accepted_anyway": accepted and not agrees}
+        for name, fraction in agreement.on_object.items():
+            self.entries[name]["on_object"] = round(fraction, 4)
+        worst = agreement.worst_part()
+        words = (f"silhouette IoU {agreement.silhouette_iou:.2f} (at least {MIN_SILHOUETTE_IOU:.2f} agrees); part "
+                 f"{worst[0]!r} lies {100 * worst[1]:.0f}% on the object")
+        self.console.say(f"    agreement with the picture: {words}")
+        if agrees:
+            return
+        if accepted:
+            self.console.say("    the predicted assembly does not match the picture; building it anyway "
+                             "(--accept-prediction)")
+            return
+        raise StageFailed(EXIT_DISAGREES, "repair",
+                          f"the predicted assembly does not match the picture: silhouette IoU "
+                          f"{agreement.silhouette_iou:.2f} < {MIN_SILHOUETTE_IOU:.2f} (part {worst[0]!r} lies "
+                          f"{100 * worst[1]:.0f}% on the object); overview.png shows both. Nothing was planned: give "
+                          "the true poses with --poses, or build the prediction anyway with --accept-prediction",
+                          worst[0])
 
     def _check_given_targets(self, assembly: Assembly) -> None:
         """Given targets put no part under the floor and no two parts into each other (:class:`BadInput`)."""
@@ -400,8 +452,13 @@ class Pipeline:
             caption = "target assembly (given)" if self.given is not None else "predicted assembly (repaired)"
             result = ("simulated result (built upside down, shown turned back)" if self.report.get("upside_down")
                       else "simulated result")
+            agreement = None
+            if self.agreement is not None:
+                agreement = (self.agreement.overlay(self.image),
+                             f"silhouette IoU {self.agreement.silhouette_iou:.2f} with the picture: green both, red "
+                             "prediction only, blue picture only")
             picture = overview_image(self.image, self.target, final, seed=self.args.seed, target_caption=caption,
-                                     result_caption=result)
+                                     result_caption=result, agreement=agreement)
             Image.fromarray(picture).save(folder / "overview.png")
         if self.simulation is not None and self.simulation.frames:
             from cell.simulate import write_gif

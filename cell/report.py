@@ -113,8 +113,10 @@ def wrapped_caption(caption: str, text_width_px: Callable[[str], float], width_p
 
 def overview_image(image_rgb: np.ndarray | None, target: Assembly, final: Assembly | None,
                    seed: int = 0, target_caption: str = "target assembly",
-                   result_caption: str = "simulated result") -> np.ndarray:
-    """Input image | target assembly | simulated result (each ``OVERVIEW_PANEL_PX`` square, captioned)."""
+                   result_caption: str = "simulated result",
+                   agreement: tuple[np.ndarray, str] | None = None) -> np.ndarray:
+    """Input image | its agreement with the target (``agreement``: a picture and its caption, for a run from a
+    picture) | target assembly | simulated result (each ``OVERVIEW_PANEL_PX`` square, captioned)."""
     from PIL import Image, ImageDraw, ImageFont
 
     from cell.render import Appearance, AssemblyRenderer, CameraSpec, fitted_distance_m
@@ -130,6 +132,10 @@ def overview_image(image_rgb: np.ndarray | None, target: Assembly, final: Assemb
     if image_rgb is not None:
         panels.append(np.asarray(Image.fromarray(image_rgb).resize((OVERVIEW_PANEL_PX, OVERVIEW_PANEL_PX))))
         captions.append("input image")
+    if agreement is not None:
+        panels.append(np.asarray(Image.fromarray(agreement[0]).resize((OVERVIEW_PANEL_PX, OVERVIEW_PANEL_PX),
+                                                                      Image.NEAREST)))
+        captions.append(agreement[1])
     for assembly, caption in ((target, target_caption), (final, result_caption)):
         if assembly is None:
             continue

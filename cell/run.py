@@ -9,8 +9,9 @@ physics, checked against the targets), export. The output folder (``--out``, def
 parent>``) holds ``report.json``, ``overview.png``, ``animation.gif``, ``trajectory.csv`` and ``program.json``
 (formats in the README); it appears complete or not at all.
 
-Exit codes: 0 success, 2 bad input (nothing written), 3 planning failed, 4 the simulation check failed (3 and 4
-write the report and pictures of what was done, for diagnosis).
+Exit codes: 0 success, 2 bad input (nothing written), 3 planning failed, 4 the simulation check failed, 5 the
+assembly predicted from the picture does not match the picture (nothing planned; ``--accept-prediction`` builds it
+anyway); 3, 4 and 5 write the report and pictures of what was done, for diagnosis.
 """
 
 from __future__ import annotations
@@ -23,7 +24,16 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from cell.errors import EXIT_BAD_INPUT, EXIT_INTERNAL, EXIT_OK, EXIT_PLANNING, EXIT_SIMULATION, BadInput, StageFailed
+from cell.errors import (
+    EXIT_BAD_INPUT,
+    EXIT_DISAGREES,
+    EXIT_INTERNAL,
+    EXIT_OK,
+    EXIT_PLANNING,
+    EXIT_SIMULATION,
+    BadInput,
+    StageFailed,
+)
 
 STAGES = ("perception", "repair", "sequence", "kitting", "motion", "timing", "simulation", "export")
 
@@ -51,6 +61,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="seconds of kitting and motion planning per build (standing, then upside down) before "
                         "the planner stops trying other placements of the jig (default 300)")
+    parser.add_argument("--accept-prediction", action="store_true",
+                        help="build the assembly predicted from the picture even where it does not match the picture "
+                        "(exit 5 otherwise); the report then says it was built, not that it succeeded")
     parser.add_argument("--no-animation", action="store_true", help="skip animation.gif (faster)")
     parser.add_argument("--quiet", action="store_true", help="no progress, only the summary")
     args = parser.parse_args(argv)
@@ -157,27 +170,34 @@ def _run(args: argparse.Namespace, console: Console) -> int:
     except StageFailed as failure:
         report["failure"] = {"stage": failure.stage, "part": failure.part, "message": str(failure)}
         exit_code = failure.exit_code
-        print(f"{'planning' if exit_code == EXIT_PLANNING else 'simulation check'} failed at {failure.stage}"
+        what = {EXIT_PLANNING: "planning failed", EXIT_SIMULATION: "simulation check failed",
+                EXIT_DISAGREES: "stopped"}[exit_code]
+        print(f"{what} at {failure.stage}"
               f"{' (part ' + repr(failure.part) + ')' if failure.part else ''}: {indented(str(failure), '    ')}",
               file=sys.stderr)
     if given is None:  # success or not, the targets are only as good as the prediction
         print(PERCEPTION_HINT, file=sys.stderr)
     report["exit_code"] = exit_code
-    report["success"] = exit_code == EXIT_OK
+    agreement = report.get("picture_agreement")
+    report["built"] = exit_code == EXIT_OK
+    # from a picture, success means built *and* the object built agrees with the picture
+    report["success"] = exit_code == EXIT_OK and (agreement is None or agreement["agrees"])
     _write_outputs(out, pipeline, report, console)
     from cell.report import summary_table
 
     print(summary_table(report))
-    verdict = {EXIT_OK: "success", EXIT_PLANNING: "planning failed", EXIT_SIMULATION: "simulation check failed"}
+    verdict = {EXIT_OK: "success" if report["success"] else
+               "built the predicted assembly, which does not match the picture (--accept-prediction)",
+               EXIT_PLANNING: "planning failed", EXIT_SIMULATION: "simulation check failed",
+               EXIT_DISAGREES: "the predicted assembly does not match the picture; nothing planned"}
     print(f"{verdict[exit_code]}: {out}/ ({', '.join(sorted(p.name for p in out.iterdir()))})")
     return exit_code
 
 
-PERCEPTION_HINT = ("note: the targets came from the picture, and the bundled compact model often misplaces parts "
-                   "(Part Accuracy per category in benchmarks/RESULTS.md): a success means the cell built the "
-                   "predicted assembly, not necessarily the object in the picture; compare the input and the "
-                   "predicted assembly in overview.png, and give known poses with --poses ASSEMBLY_JSON to check "
-                   "the cell alone")
+PERCEPTION_HINT = ("note: the targets came from the picture, and the bundled model often misplaces parts (Part "
+                   "Accuracy per category in benchmarks/RESULTS.md); the run plans only a predicted assembly whose "
+                   "silhouette matches the picture's (report.json: picture_agreement), and overview.png shows both; "
+                   "give known poses with --poses ASSEMBLY_JSON to check the cell alone")
 
 
 def _write_outputs(out: Path, pipeline, report: dict, console: Console) -> None:

@@ -34,6 +34,7 @@ from torch import nn
 from tqdm import tqdm
 
 from cell.render import Appearance, AssemblyRenderer, Rendering, sample_camera
+from perception.agreement import object_mask, picture_agreement
 from perception.elevation import image_elevation_deg
 from perception.metrics import AssemblyResult, MetricSummary, evaluate_assembly
 from perception.normalize import camera_from_canonical_norm
@@ -112,6 +113,8 @@ class ViewOutcome:
     depth_error_m: float
     penetration_m: dict = field(default_factory=dict)  # deepest penetration between two parts: before, after repair
     deepest_overlap_after: dict | None = None  # after repair: {"parts": [a, b], "depth_m", "equivalent"}
+    # the repaired and the true assembly drawn against the picture's object (perception.agreement): silhouette IoU
+    agreement: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -193,7 +196,7 @@ def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: 
     centre_camera_m = view.camera_from_assembly.apply(0.5 * (bounds[0] + bounds[1]))
     gt_quat, gt_trans = truth_targets(view, parts, centre_camera_m)
     start, start_cpu = time.perf_counter(), time.process_time()
-    quat, trans = run_network(model, view.rgb, parts, max_parts)
+    quat, trans, foreground = run_network(model, view.rgb, parts, max_parts, with_foreground=True)
     elevation = image_elevation_deg(view.rgb)  # as perception.predict reads up (None without its weights)
     placement: Placement = place_parts(quat, trans, parts.normalized, parts.meshes,
                                        image_elevation_deg=elevation)
@@ -217,6 +220,17 @@ def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: 
     camera_from_repaired = [placement.camera_from_assembly @ p for p in repaired]
     quat_r, trans_r = network_frame(camera_from_repaired, parts, placement.centre_camera_m)
     outcome.after = evaluate_assembly(points, quat_r, trans_r, gt_quat, gt_trans, classes, view.visible_pixels)
+    mask, _ = object_mask(view.rgb, foreground)
+    if mask.any():
+        names = [p.name for p in convex]
+        repaired_view = picture_agreement(mask, names, parts.meshes, camera_from_repaired)
+        truth_view = picture_agreement(mask, names, parts.meshes,
+                                       [view.camera_from_assembly @ p for p in truth_poses])
+        outcome.agreement = {"repaired_iou": repaired_view.silhouette_iou,
+                             "repaired_min_on_object": min(repaired_view.on_object.values()),
+                             "truth_iou": truth_view.silhouette_iou,
+                             "truth_min_on_object": min(truth_view.on_object.values()),
+                             "object_fraction": repaired_view.object_fraction}
     for key, poses in (("truth", truth_poses), ("predicted", placement.assembly_from_part), ("repaired", repaired)):
         contacts = contact_graph(convex, poses)
         fraction, whole = connectivity(contacts)
@@ -269,6 +283,6 @@ def evaluate_assemblies(model: nn.Module, root: str | Path, views: int = 1, seed
          "part_accuracy_repaired": float(np.mean(o.after.correct)) if o.after is not None else None,
          "up_error_deg": round(o.up_error_deg, 3), "inference_s": round(o.inference_s, 4),
          "inference_cpu_s": round(o.inference_cpu_s, 4), "deepest_overlap_after": o.deepest_overlap_after,
-         **o.connectivity}
+         "picture_agreement": o.agreement, **o.connectivity}
         for o in accumulator.outcomes]
     return figures

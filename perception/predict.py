@@ -67,7 +67,8 @@ class Prediction:
     assembly_from_part: upright assembly frame (+z up, lowest point at z = 0, origin at the footprint centre),
     metres. camera_from_assembly: the assembly frame in the camera frame. up: the up estimate, camera frame.
     quat_wxyz (N, 4) / trans_norm (N, 3): the network's raw output (canonical parts, object-centred camera frame,
-    normalised units). seconds: wall time of the call."""
+    normalised units). seconds: wall time of the call. foreground: the segmentation's (224, 224) probability
+    that a pixel lies on the object (:mod:`perception.agreement`), None for a model without a segmentation."""
 
     names: list
     camera_from_part: dict
@@ -80,6 +81,7 @@ class Prediction:
     checkpoint: Path
     kind: str
     seconds: float
+    foreground: np.ndarray | None = None  # (224, 224) float32: P(pixel on the object), None without a segmentation
 
     def summary(self) -> dict:
         """JSON-ready figures for reports."""
@@ -130,16 +132,31 @@ def prepare_parts(meshes: list[trimesh.Trimesh]) -> PreparedParts:
 
 @torch.no_grad()
 def run_network(model: torch.nn.Module, image: np.ndarray, parts: PreparedParts,
-                max_parts: int = MAX_PART_INSTANCES) -> tuple[np.ndarray, np.ndarray]:
+                max_parts: int = MAX_PART_INSTANCES, with_foreground: bool = False):
     """The network's poses for one picture: quat_wxyz (N, 4) and trans_norm (N, 3), canonical parts in the
-    object-centred camera frame, normalised units."""
+    object-centred camera frame, normalised units. ``with_foreground``: also the (H, W) float32 probability that
+    each pixel of the picture lies on the object, from the segmentation (``None`` for a model without one, the
+    baselines), as a third element."""
     n = len(parts.meshes)
     sample = {"image": image, "part_labels": np.full(image.shape[:2], -1, np.int8),
               "points": parts.normalized.points_norm, "instance_onehot": parts.instance_onehot,
               "classes": parts.classes, "visible_pixels": np.zeros(n, np.int64)}
     model.eval()
     out = model(collate([sample], max_parts))
-    return out["quat"][0, :n].double().numpy(), out["trans"][0, :n].double().numpy()
+    quat, trans = out["quat"][0, :n].double().numpy(), out["trans"][0, :n].double().numpy()
+    if not with_foreground:
+        return quat, trans
+    return quat, trans, _foreground(out, image.shape[:2])
+
+
+def _foreground(out: dict, shape: tuple[int, int]) -> np.ndarray | None:
+    """The segmentation's foreground probability at the picture's resolution, or None without a segmentation."""
+    if "background" not in out:
+        return None
+    foreground = 1.0 - out["background"][:1, None].float()
+    if tuple(foreground.shape[-2:]) != tuple(shape):
+        foreground = torch.nn.functional.interpolate(foreground, size=shape, mode="bilinear", align_corners=False)
+    return foreground[0, 0].numpy().astype(np.float32)
 
 
 def predict(image, part_meshes, checkpoint: str | Path | None = None, *, threads: int | None = INFERENCE_THREADS,
@@ -164,7 +181,7 @@ def predict(image, part_meshes, checkpoint: str | Path | None = None, *, threads
         raise PredictionError(f"cannot load the perception weights: {exc}") from exc
     parts = prepare_parts(meshes)
     with inference_threads(threads):
-        quat, trans = run_network(model, image, parts, config.model.max_parts)
+        quat, trans, foreground = run_network(model, image, parts, config.model.max_parts, with_foreground=True)
         elevation = image_elevation_deg(image) if image_elevation else None
     placement: Placement = place_parts(quat, trans, parts.normalized, meshes, up_settings, fov_deg, elevation)
     return Prediction(
@@ -179,4 +196,5 @@ def predict(image, part_meshes, checkpoint: str | Path | None = None, *, threads
         checkpoint=path,
         kind=kind,
         seconds=time.perf_counter() - start,
+        foreground=foreground,
     )
