@@ -254,7 +254,7 @@ def ours_details(ours: dict) -> list[str]:
         c, up, t, r = f["connectivity"], f["up_error_deg"], f["inference_s"], f.get("after_repair", {})
         pen = f.get("deepest_penetration_m", {"before": {"mean": None}, "after": {"mean": None}})
         pen_mm = [None if pen[k]["mean"] is None else 1000 * pen[k]["mean"] for k in ("before", "after")]
-        crossing = f.get("crossing_after_repair", {})  # absent from results cached before session 29
+        crossing = f.get("crossing_after_repair", {})  # absent from results cached by older versions of this script
         lines.append(
             f"| {label} | {fmt(f['part_accuracy'])} | {fmt(f['part_accuracy_visible'])} | "
             f"{fmt(f['part_accuracy_invisible'])} | {fmt(f['shape_chamfer'], 4)} | {fmt(r.get('part_accuracy'))} | "

@@ -93,7 +93,7 @@ class LossConfig:
     mask_cross_entropy: float = 0.0
     # Beyond the paper: weight of the crossing penalty (perception.losses.crossing_penalty), how far the predicted
     # poses push points of one part through another part's box to its wrong side (0: the paper's loss). Measured
-    # on the compact model (benchmarks/RESULTS.md, sessions 30-31): weight 0.25 lowered Part Accuracy and raised the
+    # on the compact model (benchmarks/RESULTS.md, "Negative results"): weight 0.25 lowered Part Accuracy and raised the
     # crossings the held-out benchmark counts; weight 0.025, one-sided, changed neither. So the bundled configs keep 0.
     crossing: float = 0.0
     # with the crossing penalty: move only the crossing part (no gradient into the frame of the part it crosses,

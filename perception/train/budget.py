@@ -1,4 +1,4 @@
-"""Train several models side by side on one machine within a wall-clock budget (a GPU lent for minutes).
+"""Train several models side by side on one machine within a wall-clock budget (a GPU held for minutes).
 
     python -m perception.train.budget --config compact_gpu --minutes 7 --data DIR [DIR ...] --out runs/gpu \\
         --models ours b_gru b_insonehot b_global
