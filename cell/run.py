@@ -51,6 +51,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="seconds of kitting and motion planning per build (standing, then upside down) before "
                         "the planner stops trying other placements of the jig (default 300)")
+    parser.add_argument("--bag-storage", choices=["mcap", "sqlite3"], default="mcap",
+                        help="the ROS 2 bag of the program: trajectory.mcap (mcap, ROS 2 Jazzy's default; the "
+                        "default) or the rosbag2 folder trajectory_bag (sqlite3, ROS 2 Humble's default)")
     parser.add_argument("--no-animation", action="store_true", help="skip animation.gif (faster)")
     parser.add_argument("--quiet", action="store_true", help="no progress, only the summary")
     args = parser.parse_args(argv)
