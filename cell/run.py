@@ -6,8 +6,8 @@
 Stages: perception (the image and the parts give each part's pose), pose repair, assembly sequence, kitting
 (where each part starts), motion (OMPL) and timing (Ruckig) of every pick and place, simulation (PyBullet with
 physics, checked against the targets), export. The output folder (``--out``, default ``out/<parts folder's
-parent>``) holds ``report.json``, ``overview.png``, ``animation.gif``, ``trajectory.csv`` and ``program.json``
-(formats in the README); it appears complete or not at all.
+parent>``) holds ``report.json``, ``overview.png``, ``animation.gif``, ``trajectory.csv``, ``program.json`` and
+the ROS 2 bag ``trajectory.mcap`` (formats in the README); it appears complete or not at all.
 
 Exit codes: 0 success, 2 bad input (nothing written), 3 planning failed, 4 the simulation check failed (3 and 4
 write the report and pictures of what was done, for diagnosis).
