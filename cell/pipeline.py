@@ -69,6 +69,7 @@ class Pipeline:
         self.world_from_target: Pose | None = None  # the target's assembly frame on the jig, once planned
         self.simulation = None
         self.samples = None
+        self.points = None  # the motions' controller points, checked
         self.entries = {name: {"name": name, "order": None} for name in parts.names}
         report["parts"] = list(self.entries.values())
 
@@ -388,7 +389,9 @@ class Pipeline:
                          f"{self.scene.robot.limits.description}'s published limits")
 
     def _check_limits(self) -> None:
-        from cell.program import CSV_RATE_HZ, LimitViolation, check_limits
+        """The timed program within the arm's limits, on its own samples and as the controller plays its exported
+        points (:func:`cell.program.check_controller_replay`), or :class:`StageFailed` (exit 3, stage "timing")."""
+        from cell.program import CSV_RATE_HZ, LimitViolation, check_controller_replay, check_limits
 
         samples = self.plan.program.sample(CSV_RATE_HZ)
         lower, upper = self.plan.joint_limits
@@ -396,7 +399,11 @@ class Pipeline:
             check_limits(samples, lower, upper, self.scene.robot.limits)
         except LimitViolation as exc:
             raise StageFailed(EXIT_PLANNING, "timing", f"the timed program breaks a limit: {exc}") from exc
-        self.samples = samples  # only a program within the limits is exported
+        try:
+            points = check_controller_replay(self.plan.program, samples, lower, upper)
+        except LimitViolation as exc:
+            raise StageFailed(EXIT_PLANNING, "timing", f"the exported program breaks a limit at {exc}") from exc
+        self.samples, self.points = samples, points  # only a program within the limits is exported
 
     def _simulate(self) -> int:
         from cell.simulate import SimPart, SimSettings, StaticBody, simulate_program
@@ -442,7 +449,8 @@ class Pipeline:
 
         if self.plan is not None and self.samples is not None:
             lower, upper = self.plan.joint_limits
-            write_exports(self.plan.program, folder, lower, upper, self.samples, self.scene.robot.limits)
+            write_exports(self.plan.program, folder, lower, upper, self.samples, self.points,
+                          getattr(self.args, "bag_storage", "mcap"), self.scene.robot.limits)
         if self.target is not None:
             final = None
             if self.simulation is not None:

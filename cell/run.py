@@ -6,8 +6,8 @@
 Stages: perception (the image and the parts give each part's pose), pose repair, assembly sequence, kitting
 (where each part starts), motion (OMPL) and timing (Ruckig) of every pick and place, simulation (PyBullet with
 physics, checked against the targets), export. The output folder (``--out``, default ``out/<parts folder's
-parent>``) holds ``report.json``, ``overview.png``, ``animation.gif``, ``trajectory.csv`` and ``program.json``
-(formats in the README); it appears complete or not at all.
+parent>``) holds ``report.json``, ``overview.png``, ``animation.gif``, ``trajectory.csv``, ``program.json`` and
+the ROS 2 bag ``trajectory.mcap`` (formats in the README); it appears complete or not at all.
 
 Exit codes: 0 success, 2 bad input (nothing written), 3 planning failed, 4 the simulation check failed, 5 the
 assembly predicted from the picture does not match the picture (nothing planned; ``--accept-prediction`` builds it
@@ -64,6 +64,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--accept-prediction", action="store_true",
                         help="build the assembly predicted from the picture even where it does not match the picture "
                         "(exit 5 otherwise); the report then says it was built, not that it succeeded")
+    parser.add_argument("--bag-storage", choices=["mcap", "sqlite3"], default="mcap",
+                        help="the ROS 2 bag of the program: trajectory.mcap (mcap, ROS 2 Jazzy's default; the "
+                        "default) or the rosbag2 folder trajectory_bag (sqlite3, ROS 2 Humble's default)")
     parser.add_argument("--no-animation", action="store_true", help="skip animation.gif (faster)")
     parser.add_argument("--quiet", action="store_true", help="no progress, only the summary")
     args = parser.parse_args(argv)

@@ -801,8 +801,7 @@ def simulate_program(program: Program, parts: Sequence[SimPart], static_bodies: 
     started = time.perf_counter()
     samples = program.sample(settings.rate_hz)
     q, qd = samples["q"], samples["qd"]
-    durations = [s.timed.duration if isinstance(s, MotionStep) else s.duration_s for s in program.steps]
-    starts = np.concatenate([[0.0], np.cumsum(durations)])
+    starts = program.step_starts_s()
     step_of = np.clip(np.searchsorted(starts, samples["t"], side="right") - 1, 0, len(program.steps) - 1)
     roles = _step_roles(program)
     # the pictures are rendered beside the physics (a second process where there is a spare core)

@@ -60,7 +60,7 @@ from planning.motion import (
     first_invalid_on_line,
     plan_joint_path,
 )
-from planning.payload import JointTorques, MassProperties, carry_limits
+from planning.payload import GRAVITY_M_S2, NO_LOAD, JointTorques, MassProperties, carry_limits, flange_load
 from planning.pose import Pose
 from planning.robot_collision import Collision, RobotCollisionChecker, checking_work_s
 from planning.timing import MAX_DEVIATION_RAD, JointLimits, time_path
@@ -78,6 +78,11 @@ LONGEST_WAY_IN_M = INSERTION_M + LEAD_IN_STEPS_M[-1]
 INSERTION_STEP_M = 0.005
 HELD_MARGIN_M = 0.002  # the held part is checked pulled in by this much, so it may slide along faces it touches
 SQUEEZE_M = 0.004  # the closing command asks for this much less than the part's width (force closure)
+# a real gripper's grasp holds the part with GRASP_SAFETY times the force friction needs to carry its weight
+# (friction coefficient GRASP_FRICTION on both fingers), within the Franka Hand's GRASP_FORCE_RANGE_N
+GRASP_SAFETY = 3.0
+GRASP_FRICTION = 0.5
+GRASP_FORCE_RANGE_N = (20.0, 70.0)
 DENSE_CHECK_RAD = 0.004  # joint step of the re-check of planned paths
 IK_ATTEMPTS = 6  # IK solutions tried (each with restarts) for a collision-free contact configuration
 JOINT_LIMIT_MARGIN_RAD = 0.01  # configurations keep this from the joint limits (timed motions must not touch them)
@@ -123,6 +128,14 @@ def timing_limits(panda: Panda) -> JointLimits:
     arm = panda.limits
     return JointLimits(LIMIT_FRACTION * arm.velocity_rad_s, LIMIT_FRACTION * arm.acceleration_rad_s2,
                        LIMIT_FRACTION * arm.jerk_rad_s3)
+
+
+def grasp_force_n(mass_kg: float | None) -> float:
+    """The force (N) a real gripper grasps a part of ``mass_kg`` with (the largest of the range where unknown)."""
+    low, high = GRASP_FORCE_RANGE_N
+    if mass_kg is None:
+        return high
+    return float(np.clip(GRASP_SAFETY * mass_kg * GRAVITY_M_S2 / (2.0 * GRASP_FRICTION), low, high))
 
 
 class TaskPlanningError(RuntimeError):
@@ -632,7 +645,8 @@ def plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray,
 
 def _plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray, progress, deadline: float,
                 resume: TaskCheckpoint | None, checkpoints: list[TaskCheckpoint]) -> TaskPlan:
-    program = Program(initial_width_m=tasks[0].grasp.opening_at_pick_m if tasks else MAX_OPENING_M)
+    program = Program(initial_width_m=tasks[0].grasp.opening_at_pick_m if tasks else MAX_OPENING_M,
+                      robot=world.panda.limits.model)
     if resume is None:
         first = 0
         plan = TaskPlan(program)
@@ -693,7 +707,10 @@ def _plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray, pro
             program.steps.append(GripperStep(f"open for {name}", grasp.opening_at_pick_m, None))
             opening = grasp.opening_at_pick_m
         add_motion(name, "approach", approach_path, valid, None)
-        program.steps.append(GripperStep(f"{name}: close", max(0.0, grasp.width_m - SQUEEZE_M), name))
+        program.steps.append(GripperStep(
+            f"{name}: close", max(0.0, grasp.width_m - SQUEEZE_M), name, kind="grasp", grasp_width_m=grasp.width_m,
+            force_n=grasp_force_n(None if task.payload is None else task.payload.mass_kg),
+            load=None if task.payload is None else flange_load(task.payload, grasp.part_from_tcp)))
         # --- carry -----------------------------------------------------------------------------------------
         del poses[name]
         world.set_part_poses(poses)
@@ -766,7 +783,8 @@ def _plan_tasks(world: CellWorld, tasks: list[PartTask], home_q: np.ndarray, pro
         program.steps.append(MotionStep(f"{name}: insert",
                                         _timed_insertion(world, insertion, valid_insert, name, carrying, corner), name))
         # --- release ---------------------------------------------------------------------------------------
-        program.steps.append(GripperStep(f"{name}: open", grasp.opening_m, name))
+        program.steps.append(GripperStep(f"{name}: open", grasp.opening_m, name,
+                                         load=None if task.payload is None else NO_LOAD))
         poses[name] = task.world_from_target
         world.set_part_poses(poses)
         world.hold(None, None, grasp.opening_m)

@@ -104,6 +104,38 @@ def mass_properties(mesh: trimesh.Trimesh, density_kg_m3: float = DEFAULT_DENSIT
                           tuple(float(max(m, 1e-9)) for m in moments))
 
 
+FLANGE_FROM_TCP = Pose.from_rotation(np.array([[np.sqrt(0.5), np.sqrt(0.5), 0.0], [-np.sqrt(0.5), np.sqrt(0.5), 0.0],
+                                                [0.0, 0.0, 1.0]]), [0.0, 0.0, 0.105])
+"""The TCP (between the fingertips) in the flange frame (the arm's last link, ``panda_link8``): the hand is turned
+-45 degrees about the flange's z axis, the TCP 0.105 m out along it."""
+
+
+@dataclass(frozen=True)
+class FlangeLoad:
+    """A held load as Franka's SetLoad service takes it: ``mass_kg``, ``flange_from_com_m`` (3,) its centre of mass
+    in the flange frame (metres) and ``inertia_kg_m2`` (3, 3) its inertia about that centre, flange axes."""
+
+    mass_kg: float
+    flange_from_com_m: tuple[float, float, float]
+    inertia_kg_m2: tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
+
+
+NO_LOAD = FlangeLoad(0.0, (0.0, 0.0, 0.0), ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)))
+"""Nothing held (beyond the hand, which the robot's end-effector settings carry)."""
+
+
+def flange_load(payload: MassProperties, part_from_tcp: Pose) -> FlangeLoad:
+    """``payload`` (the part's mass properties, part frame) held at the grasp ``part_from_tcp``, in the flange
+    frame (:data:`FLANGE_FROM_TCP`)."""
+    flange_from_part = FLANGE_FROM_TCP @ part_from_tcp.inverse()
+    flange_from_com = flange_from_part @ payload.part_from_com
+    axes = flange_from_com.rotation  # the principal axes in the flange frame
+    inertia = axes @ np.diag(payload.inertia_kg_m2) @ axes.T
+    inertia = 0.5 * (inertia + inertia.T)
+    return FlangeLoad(float(payload.mass_kg), tuple(float(v) for v in flange_from_com.position),
+                      tuple(tuple(float(v) for v in row) for row in inertia))
+
+
 def volume_m3(mesh: trimesh.Trimesh) -> float:
     """The part's volume (m^3) as :func:`mass_properties` weighs it; mesh in metres."""
     return mass_properties(mesh, 1.0).mass_kg
@@ -263,5 +295,6 @@ class JointTorques:
                 f"more than {self.fraction:.0%} of its {self.limits_nm[k]:.0f} N m")
 
 
-__all__ = ["DEFAULT_DENSITY_KG_M3", "JointTorques", "MOVING_TORQUE_FRACTION", "MassProperties", "PANDA_LINK_DYNAMICS",
-           "PANDA_TORQUE_LIMITS_NM", "carry_limits", "carry_scale", "mass_properties", "volume_m3"]
+__all__ = ["DEFAULT_DENSITY_KG_M3", "FLANGE_FROM_TCP", "FlangeLoad", "JointTorques", "MOVING_TORQUE_FRACTION",
+           "MassProperties", "NO_LOAD", "PANDA_LINK_DYNAMICS", "PANDA_TORQUE_LIMITS_NM", "carry_limits", "carry_scale",
+           "flange_load", "mass_properties", "volume_m3"]

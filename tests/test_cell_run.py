@@ -60,7 +60,7 @@ def test_full_assembly_with_given_poses_succeeds(run_with_poses):
     result, out = run_with_poses
     assert result.returncode == 0, result.stdout + result.stderr
     assert sorted(p.name for p in out.iterdir()) == ["animation.gif", "overview.png", "program.json",
-                                                     "report.json", "trajectory.csv"]
+                                                     "report.json", "trajectory.csv", "trajectory.mcap"]
     report = json.loads((out / "report.json").read_text())
     assert report["success"] and report["exit_code"] == 0 and report["failure"] is None
     assert report["planning_notes"] == [] and report["jig_turn_deg"] == 0.0  # built at the first try
@@ -104,14 +104,44 @@ def test_exported_trajectory_respects_the_panda_limits(run_with_poses):
     # the velocities are the derivative of the positions (the columns are one consistent trajectory)
     np.testing.assert_allclose(np.diff(q, axis=0) / 1e-3, 0.5 * (qd[1:] + qd[:-1]), atol=2e-3)
     program = json.loads((out / "program.json").read_text())
-    assert program["joint_names"] == joints
+    controller_joints = [f"fer_joint{k}" for k in range(1, 8)]  # as franka_ros2 names the Panda's
+    assert program["robot"] == "panda" and program["joint_names"] == controller_joints
     motions = [s for s in program["steps"] if s["type"] == "motion"]
-    assert motions and all(s["trajectory"]["joint_names"] == joints for s in motions)
+    assert motions and all(s["trajectory"]["joint_names"] == controller_joints for s in motions)
     point = motions[0]["trajectory"]["points"][-1]
     assert set(point) == {"positions", "velocities", "accelerations", "time_from_start"}
     assert set(point["time_from_start"]) == {"sec", "nanosec"}
     total = sum(s["duration_s"] for s in program["steps"])
     assert total == pytest.approx(t[-1], abs=2e-3)
+
+
+def test_the_bag_is_the_csv_and_the_report_as_a_controller_receives_them(run_with_poses):
+    """trajectory.mcap read back with rosbags: every JointTrajectory point is the CSV's row at its time stamp, each
+    grasp goal has the part's width (report.json), each grasp is followed by the part's mass and each release by
+    none."""
+    from rosbags.highlevel import AnyReader
+
+    _, out = run_with_poses
+    with open(out / "trajectory.csv", newline="") as handle:
+        table = np.array(list(csv.reader(handle))[1:], dtype=np.float64)
+    report = json.loads((out / "report.json").read_text())
+    parts = {p["name"]: p for p in report["parts"]}
+    with AnyReader([out / "trajectory.mcap"]) as reader:
+        messages = [(c.topic, t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages()]
+    grasps = [m for topic, _, m in messages if topic == "/franka_gripper/grasp/goal"]
+    loads = [m.inertia.m for topic, _, m in messages if topic == "/service_server/set_load/request"]
+    order = sorted(parts, key=lambda name: parts[name]["order"])
+    assert [g.width for g in grasps] == [parts[name]["grasp"]["width_m"] for name in order]
+    assert loads == [x for name in order for x in (pytest.approx(parts[name]["mass_kg"]), 0.0)]
+    for topic, stamp, message in messages:
+        if topic != "/fer_arm_controller/joint_trajectory":
+            continue
+        stamps = [stamp + p.time_from_start.sec * 10 ** 9 + p.time_from_start.nanosec for p in message.points]
+        assert all(ns % 10 ** 6 == 0 for ns in stamps)  # on the 1 kHz control cycle, a row of the CSV
+        rows = [ns // 10 ** 6 for ns in stamps]
+        np.testing.assert_array_equal(table[rows, 0], np.array(rows) / 1000.0)
+        np.testing.assert_array_equal(np.round([p.positions for p in message.points], 9), table[rows, 1:8])
+        np.testing.assert_array_equal(np.round([p.accelerations for p in message.points], 9), table[rows, 15:22])
 
 
 # --- bad input: exit 2, the culprit named, nothing written --------------------------------------------------

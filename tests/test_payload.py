@@ -138,3 +138,34 @@ def test_moving_torques_agree_with_pybullets_inverse_dynamics():
             np.testing.assert_allclose(at_rest, model.torques_nm(states[0][0][None])[0], atol=1e-9)
     moving = states[1]
     assert not np.allclose(models["arm"].moving_torques_nm(*moving), models["loaded"].moving_torques_nm(*moving))
+
+
+def test_flange_load_matches_the_arm_held_part_in_pybullet():
+    """The SetLoad numbers of a held part: its centre of mass and inertia in the flange frame (panda_link8), checked
+    against PyBullet's forward kinematics of the flange and the TCP (PyBullet keeps link poses to about 1e-8 m)."""
+    from cell.bullet import BulletClient
+    from cell.robot import Panda
+    from planning.payload import flange_load
+
+    box = trimesh.creation.box(extents=(0.4, 0.1, 0.02))
+    box.apply_translation((0.05, 0.01, 0.0))
+    props = mass_properties(box, 600.0)
+    part_from_tcp = Pose.from_rotation(trimesh.transformations.rotation_matrix(0.7, (0.3, 1.0, 0.2))[:3, :3],
+                                       (0.12, 0.0, 0.01))
+    load = flange_load(props, part_from_tcp)
+    with BulletClient() as client:
+        panda = Panda(client, Pose.identity())
+        q = np.array([0.3, -0.5, 0.2, -2.0, 0.4, 1.7, 0.6])
+        world_from_tcp = panda.forward_tcp(q)
+        link8 = [j for j in range(panda.pb.getNumJoints(panda.body, physicsClientId=panda.cid))
+                 if panda.pb.getJointInfo(panda.body, j, physicsClientId=panda.cid)[12] == b"panda_link8"][0]
+        state = panda.pb.getLinkState(panda.body, link8, computeForwardKinematics=True, physicsClientId=panda.cid)
+        world_from_flange = Pose.from_pybullet(state[4], state[5])
+    world_from_part = world_from_tcp @ part_from_tcp.inverse()
+    com_world = (world_from_part @ props.part_from_com).position
+    np.testing.assert_allclose(load.flange_from_com_m, world_from_flange.inverse().apply(com_world), atol=1e-7)
+    axes_world = (world_from_part @ props.part_from_com).rotation
+    inertia_world = axes_world @ np.diag(props.inertia_kg_m2) @ axes_world.T
+    flange_axes = world_from_flange.rotation
+    np.testing.assert_allclose(load.inertia_kg_m2, flange_axes.T @ inertia_world @ flange_axes, atol=1e-9)
+    assert load.mass_kg == pytest.approx(600.0 * 0.4 * 0.1 * 0.02)

@@ -21,7 +21,9 @@ A = HOME + [0.4, 0.2, 0.0, 0.3, 0.0, -0.2, 0.0]
 B = HOME + [-0.4, 0.1, 0.2, 0.2, 0.1, 0.0, -0.3]
 
 
-PANDA_LIMITS = JointLimits(VELOCITY_LIMITS, ACCELERATION_LIMITS, JERK_LIMITS)
+# the planner's: 90% of the published limits (a program timed at 100% of the jerk limit breaks it by a fraction of a
+# percent as the controller plays its points back, and is refused)
+PANDA_LIMITS = JointLimits(0.9 * VELOCITY_LIMITS, 0.9 * ACCELERATION_LIMITS, 0.9 * JERK_LIMITS)
 
 
 def program(limits=PANDA_LIMITS):
@@ -58,7 +60,7 @@ def test_exports_are_well_formed_and_within_limits(tmp_path):
     document = json.loads((tmp_path / "program.json").read_text())
     assert [s["type"] for s in document["steps"]] == ["motion", "gripper", "motion", "gripper"]
     trajectory = document["steps"][2]["trajectory"]
-    assert trajectory["joint_names"] == [f"panda_joint{i}" for i in range(1, 8)]
+    assert trajectory["joint_names"] == [f"fer_joint{i}" for i in range(1, 8)]  # franka_ros2's Panda
     point = trajectory["points"][-1]
     assert set(point) == {"positions", "velocities", "accelerations", "time_from_start"}
     assert set(point["time_from_start"]) == {"sec", "nanosec"}
