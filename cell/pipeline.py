@@ -21,6 +21,7 @@ from planning.assembly import Assembly, AssemblyPart
 from planning.collision import MAX_FITTING_OVERLAP_M
 from planning.payload import DEFAULT_DENSITY_KG_M3
 from planning.pose import Pose
+from planning.robot_limits import robot_limits
 
 MIN_SILHOUETTE_IOU = 0.80  # a predicted assembly agrees with its picture from this silhouette IoU on (RESULTS.md)
 REPAIR_GIVEN_POSES = False  # given (--poses) targets are taken as they are; predicted ones are repaired
@@ -396,7 +397,7 @@ class Pipeline:
         samples = self.plan.program.sample(CSV_RATE_HZ)
         lower, upper = self.plan.joint_limits
         try:
-            check_limits(samples, lower, upper, self.scene.robot.limits)
+            check_limits(samples, lower, upper, robot_limits(self.plan.program.robot))
         except LimitViolation as exc:
             raise StageFailed(EXIT_PLANNING, "timing", f"the timed program breaks a limit: {exc}") from exc
         try:
@@ -450,7 +451,7 @@ class Pipeline:
         if self.plan is not None and self.samples is not None:
             lower, upper = self.plan.joint_limits
             write_exports(self.plan.program, folder, lower, upper, self.samples, self.points,
-                          getattr(self.args, "bag_storage", "mcap"), self.scene.robot.limits)
+                          getattr(self.args, "bag_storage", "mcap"))
         if self.target is not None:
             final = None
             if self.simulation is not None:

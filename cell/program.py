@@ -375,15 +375,15 @@ def load(path: str | Path) -> Program:
 
 def write_exports(program: Program, folder: Path, lower: np.ndarray, upper: np.ndarray,
                   samples: dict[str, np.ndarray] | None = None, points: list[MotionPoints] | None = None,
-                  bag_storage: str = "mcap", arm: RobotLimits = PANDA) -> dict[str, np.ndarray]:
-    """Check the limits (:func:`check_limits` against ``arm``'s, :func:`check_controller_replay`), then write
+                  bag_storage: str = "mcap") -> dict[str, np.ndarray]:
+    """Check the limits of the program's robot (:func:`check_limits`, :func:`check_controller_replay`), then write
     ``trajectory.csv``, ``program.json`` and the ROS 2 bag (:func:`cell.ros2_export.write_bag`, ``bag_storage``
     "mcap" or "sqlite3") into ``folder``; returns the samples. ``samples``: ``program.sample(CSV_RATE_HZ)`` and
     ``points``: the checked :func:`motion_points`, when the caller has them (the limits are checked again)."""
     from cell.ros2_export import write_bag
 
     samples = program.sample(CSV_RATE_HZ) if samples is None else samples
-    check_limits(samples, lower, upper, arm)
+    check_limits(samples, lower, upper, robot_limits(program.robot))
     points = check_controller_replay(program, samples, lower, upper, points)
     folder.mkdir(parents=True, exist_ok=True)
     header = (["t"] + [f"q_{n}" for n in ARM_JOINTS] + [f"qd_{n}" for n in ARM_JOINTS]

@@ -132,7 +132,16 @@ def test_sqlite3_storage_writes_a_humble_bag_folder_with_the_same_messages(expor
 
 
 def test_the_fr3_gets_its_own_joint_names_and_controller(tmp_path):
-    write_exports(pick_and_place("fr3"), tmp_path, LOWER, UPPER)
+    """Timed within the FR3's own limits (its datasheet, written out here: 2.62 / 5.26 / 4.18 rad/s, 10 rad/s^2,
+    5000 rad/s^3), checked against them; the Panda's timing would break the FR3's acceleration limit."""
+    fr3 = JointLimits(0.9 * np.array([2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26]), 0.9 * np.full(7, 10.0),
+                      0.9 * np.full(7, 5000.0))
+    fr3_lower = np.array([-2.7437, -1.7837, -2.9007, -3.0421, -2.8065, 0.5445, -3.0159])
+    fr3_upper = np.array([2.7437, 1.7837, 2.9007, -0.1518, 2.8065, 4.5169, 3.0159])
+    with pytest.raises(LimitViolation, match=r"acceleration .* is over its limit"):
+        write_exports(pick_and_place("fr3"), tmp_path / "panda_timed", fr3_lower, fr3_upper)
+    assert not (tmp_path / "panda_timed").exists()
+    write_exports(pick_and_place("fr3", fr3), tmp_path, fr3_lower, fr3_upper)
     messages = read_bag(tmp_path / "trajectory.mcap")
     assert messages[0][0] == "/fr3_arm_controller/joint_trajectory"
     assert messages[0][3].joint_names[0] == "fr3_joint1" and messages[2][3].header.frame_id == "fr3_link8"
