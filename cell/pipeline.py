@@ -13,7 +13,16 @@ import time
 
 import numpy as np
 
-from cell.errors import EXIT_DISAGREES, EXIT_OK, EXIT_PLANNING, EXIT_SIMULATION, BadInput, StageFailed
+from cell.errors import (
+    EXIT_DISAGREES,
+    EXIT_OK,
+    EXIT_PLANNING,
+    EXIT_SIMULATION,
+    BadInput,
+    BadPicture,
+    BadTarget,
+    StageFailed,
+)
 from cell.inputs import Parts
 from cell.report import assembly_with_poses, pose_json
 from cell.scene import Scene
@@ -89,7 +98,7 @@ class Pipeline:
 
     def set_targets(self, poses: dict[str, Pose]) -> None:
         """The target assembly from every part's pose (assembly frame, metres): given poses checked for overlaps,
-        predicted ones repaired. Raises :class:`BadInput` for given poses that overlap, a target out of reach or a
+        predicted ones repaired. Raises :class:`BadTarget` for given poses that overlap, a target out of reach or a
         part too heavy; :class:`StageFailed` (exit 3, stage "repair") for repaired targets that still cross, with
         ``self.target`` set to them so that ``overview.png`` shows them."""
         assembly = Assembly(self.parts.files[0].parent.parent.name or "object",
@@ -111,9 +120,9 @@ class Pipeline:
         far = out_of_reach(self.scene, assembly)
         if far:
             name, distance = far[0]
-            raise BadInput(f"part {name!r}: its target on the jig is {distance:.2f} m from the robot's shoulder, out "
-                           f"of the Panda's reach; scale the object down (--units) or move the jig "
-                           f"([fixture] world_from_assembly in the scene file)")
+            raise BadTarget(f"part {name!r}: its target on the jig is {distance:.2f} m from the robot's shoulder, out "
+                            f"of the Panda's reach; scale the object down (--units) or move the jig "
+                            f"([fixture] world_from_assembly in the scene file)")
         payload_kg = self.scene.robot.payload_kg
         masses = part_masses_kg(assembly, self.density_kg_m3, self.part_density_kg_m3)
         for name, kg in masses.items():
@@ -126,9 +135,9 @@ class Pipeline:
             density = self.part_density_kg_m3[name]
             weight = (f"its given mass is {kg:.1f} kg (--masses)" if name in self.given_density_kg_m3 else
                       f"it weighs {kg:.1f} kg ({kg / density * 1000:.1f} litres at {density:.0f} kg/m3, --density)")
-            raise BadInput(f"part {name!r}{others}: {weight}, more than the Panda's rated payload of {payload_kg:g} kg "
-                           "([robot] payload_kg in the scene file); give the parts' real density or masses "
-                           "(--masses) if they are lighter, scale the object down or split the part")
+            raise BadTarget(f"part {name!r}{others}: {weight}, more than the Panda's rated payload of "
+                            f"{payload_kg:g} kg ([robot] payload_kg in the scene file); give the parts' real density "
+                            "or masses (--masses) if they are lighter, scale the object down or split the part")
         self.target = assembly
 
     def _predict(self) -> dict[str, Pose]:
@@ -143,15 +152,15 @@ class Pipeline:
         self.prediction = prediction
         from perception.agreement import MAX_PIXEL_NOISE, holds_an_object, object_mask, pixel_noise
 
-        where = self.args.image
+        where = self.report["inputs"]["image"] or "the picture"
         noise = pixel_noise(self.image)
         if noise > MAX_PIXEL_NOISE:
-            raise BadInput(f"{where}: the picture looks like noise (neighbouring pixels differ by {noise:.0f} of 255 "
+            raise BadPicture(f"{where}: the picture looks like noise (neighbouring pixels differ by {noise:.0f} of 255 "
                            f"on median, a photo by a few); give a picture of the assembled object")
         mask, source = object_mask(self.image, prediction.foreground)
         self.object_mask, self.report["perception"]["object_mask"] = mask, source
         if not holds_an_object(mask):
-            raise BadInput(f"{where}: no object found in the picture (it covers {100 * mask.mean():.1f}% of it, by "
+            raise BadPicture(f"{where}: no object found in the picture (it covers {100 * mask.mean():.1f}% of it, by "
                            f"the {source}); give a picture of the assembled object, filling much of the frame")
         for name in self.parts.names:
             self.entries[name]["predicted_camera_from_part"] = pose_json(prediction.camera_from_part[name])
@@ -193,24 +202,24 @@ class Pipeline:
                           worst[0])
 
     def _check_given_targets(self, assembly: Assembly) -> None:
-        """Given targets put no part under the floor and no two parts into each other (:class:`BadInput`)."""
+        """Given targets put no part under the floor and no two parts into each other (:class:`BadTarget`)."""
         from planning.collision import ConvexPart, overlapping_pairs
 
         lowest = {p.name: float(p.assembly_from_part.apply(p.mesh.vertices)[:, 2].min()) for p in assembly.parts}
         name = min(lowest, key=lowest.get)
         if lowest[name] < -MAX_BELOW_FLOOR_M:
-            raise BadInput(f"{self.args.poses}: part {name!r} reaches {-lowest[name] * 1000:.0f} mm below the floor; "
-                           "in the assembly frame the floor is z = 0 and the object stands on it, so check its pose "
-                           "(or move every part up by that much)")
+            raise BadTarget(f"{self.args.poses}: part {name!r} reaches {-lowest[name] * 1000:.0f} mm below the floor; "
+                            "in the assembly frame the floor is z = 0 and the object stands on it, so check its pose "
+                            "(or move every part up by that much)")
         convex = [ConvexPart.from_mesh(p.name, p.mesh) for p in assembly.parts]
         pairs = overlapping_pairs(convex, [p.assembly_from_part for p in assembly.parts], MAX_FITTING_OVERLAP_M)
         if pairs:
             a, b, depth = pairs[0]
             more = f" ({len(pairs) - 1} more pair(s) too)" if len(pairs) > 1 else ""
-            raise BadInput(f"{self.args.poses}: parts {a!r} and {b!r} overlap by {depth * 1000:.0f} mm at their "
-                           f"targets{more}, more than the {MAX_FITTING_OVERLAP_M * 1000:.0f} mm a connector's hole or "
-                           "a model's slack accounts for; check their poses (one part placed at another's position, "
-                           "or a wrong unit)")
+            raise BadTarget(f"{self.args.poses}: parts {a!r} and {b!r} overlap by {depth * 1000:.0f} mm at their "
+                            f"targets{more}, more than the {MAX_FITTING_OVERLAP_M * 1000:.0f} mm a connector's hole or "
+                            "a model's slack accounts for; check their poses (one part placed at another's position, "
+                            "or a wrong unit)")
 
     def _repair(self, assembly: Assembly) -> tuple[Assembly, tuple[str, str] | None]:
         """The repaired assembly, and (message, part) when two of its parts still cross (``None`` otherwise)."""

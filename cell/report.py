@@ -3,7 +3,9 @@
 ``report.json`` (all poses ``{"position": [x, y, z], "quat_wxyz": [w, x, y, z]}``, metres)::
 
     {"success": bool, "exit_code": int, "failure": null | {"stage", "part", "message"},
-     "inputs": {"image", "parts", "poses", "scene", "seed", "units"},
+     "inputs": {"image", "parts", "poses", "scene", "seed", "units", "density_kg_m3", "masses",
+                "notes" (what the input readers changed or skipped: a picture cropped or padded to square, material
+                and texture files beside the meshes)},
      "stages": {"perception": seconds, ...},
      "time_budget_s": float, "planning_cpu_s": {"standing": seconds, "upside_down": seconds (each build planned)},
      "planning_notes": [{"upside_down", "note"}, ...],

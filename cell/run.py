@@ -3,11 +3,13 @@
     python -m cell.run --image scenes/chair/chair.png --parts scenes/chair/parts
     python -m cell.run --parts scenes/chair/parts --poses scenes/chair/assembly.json   # skip perception
 
+(the same as ``image-assembly run ...``; from Python, :func:`cell.assemble`, which this command calls).
+
 Stages: perception (the image and the parts give each part's pose), pose repair, assembly sequence, kitting
 (where each part starts), motion (OMPL) and timing (Ruckig) of every pick and place, simulation (PyBullet with
 physics, checked against the targets), export. The output folder (``--out``, default ``out/<parts folder's
 parent>``) holds ``report.json``, ``overview.png``, ``animation.gif``, ``trajectory.csv``, ``program.json`` and
-the ROS 2 bag ``trajectory.mcap`` (formats in the README); it appears complete or not at all.
+the ROS 2 bag ``trajectory.mcap`` (formats in docs/formats.md); it appears complete or not at all.
 
 Exit codes: 0 success, 2 bad input (nothing written), 3 planning failed, 4 the simulation check failed, 5 the
 assembly predicted from the picture does not match the picture (nothing planned; ``--accept-prediction`` builds it
@@ -18,46 +20,39 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 import traceback
-from contextlib import contextmanager
-from dataclasses import dataclass, field
 from pathlib import Path
 
-from cell.errors import (
-    EXIT_BAD_INPUT,
-    EXIT_DISAGREES,
-    EXIT_INTERNAL,
-    EXIT_OK,
-    EXIT_PLANNING,
-    EXIT_SIMULATION,
-    BadInput,
-    StageFailed,
-)
+from cell.api import PERCEPTION_HINT, Options, check_options, check_out, run_checked, verdict
+from cell.console import STAGES, Console
+from cell.errors import EXIT_BAD_INPUT, EXIT_INTERNAL, BadInput, BadOption
 
-STAGES = ("perception", "repair", "sequence", "kitting", "motion", "timing", "simulation", "export")
+MASSES_HELP = ('known part masses in kg: a JSON file, or the JSON itself in single quotes, {"part name": kg, ...} '
+               """(e.g. --masses '{"seat": 1.4}'); parts it leaves out weigh their volume at --density""")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m cell.run", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--image", type=Path, help="square RGB picture of the assembled object (224x224 or larger)")
+    parser.add_argument("--image", type=Path, help="RGB picture of the assembled object, at least 224x224; a "
+                        "non-square one is centre-cropped to a square (see --pad), then resized to 224x224")
     parser.add_argument("--parts", type=Path, required=True,
-                        help="folder of part meshes (.obj/.stl/.ply/...), one file per part, in their own frames")
+                        help="folder of part meshes (.obj/.stl/.ply/...), one file per part, in their own frames; "
+                        "materials and textures beside them (.mtl, .png, .jpg) are skipped")
     parser.add_argument("--poses", type=Path,
                         help="target poses as an assembly.json (assembly folder format): skips perception")
     parser.add_argument("--scene", type=Path, help="robot cell scene file (default: the bundled scenes/cell.toml)")
     parser.add_argument("--out", type=Path, help="output folder (default: out/<name of the parts' parent folder>)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of every random choice, 0 to 4294967295 "
+                        "(default 0)")
     parser.add_argument("--units", choices=["m", "cm", "mm"], default="m", help="units of the mesh files (default m)")
     parser.add_argument("--checkpoint", type=Path, help="perception weights (default: the bundled ones)")
-    parser.add_argument("--planner", default="RRTConnect", help="OMPL planner (default RRTConnect)")
+    parser.add_argument("--planner", default="RRTConnect", help="OMPL planner: RRTConnect (default), RRT, RRTstar, "
+                        "PRM, KPIECE1, BKPIECE1, LBKPIECE1 or BITstar")
     parser.add_argument("--density", type=float, default=None, metavar="KG_M3",
                         help="the parts' material, for their weight (payload, joint torques, simulation; default 600, "
                         "wood; honeycomb board about 300, MDF 750, aluminium 2700)")
-    parser.add_argument("--masses", type=Path, metavar="JSON",
-                        help='known part masses in kg, as a JSON object {"part name": kg, ...}; parts it leaves out '
-                        "weigh their volume at --density")
+    parser.add_argument("--masses", metavar="FILE_OR_JSON", help=MASSES_HELP)
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="seconds of kitting and motion planning per build (standing, then upside down) before "
                         "the planner stops trying other placements of the jig (default 300)")
@@ -67,55 +62,30 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--bag-storage", choices=["mcap", "sqlite3"], default="mcap",
                         help="the ROS 2 bag of the program: trajectory.mcap (mcap, ROS 2 Jazzy's default; the "
                         "default) or the rosbag2 folder trajectory_bag (sqlite3, ROS 2 Humble's default)")
+    parser.add_argument("--pad", action="store_true", help="pad a non-square picture to a square with its border "
+                        "colour instead of cropping it")
     parser.add_argument("--no-animation", action="store_true", help="skip animation.gif (faster)")
-    parser.add_argument("--quiet", action="store_true", help="no progress, only the summary")
+    parser.add_argument("--quiet", action="store_true", help="no progress, only notes, failures and the summary")
     args = parser.parse_args(argv)
     if args.image is None and args.poses is None:
         parser.error("give --image (perception predicts the poses) or --poses (target poses given)")
-    from cell.inputs import MAX_DENSITY_KG_M3, MIN_DENSITY_KG_M3
-
-    if args.density is not None and not MIN_DENSITY_KG_M3 <= args.density <= MAX_DENSITY_KG_M3:  # also refuses nan
-        parser.error(f"--density {args.density:g}: give the parts' density in kg/m3, from {MIN_DENSITY_KG_M3:.0f} to "
-                     f"{MAX_DENSITY_KG_M3:.0f} (wood is 600 kg/m3, 0.6 g/cm3)")
-    if args.time_budget is not None and not args.time_budget > 0:  # also refuses nan
-        parser.error(f"--time-budget {args.time_budget:g}: give a number of seconds above 0")
+    try:
+        check_options(options_from_args(args), cli=True)
+    except BadOption as exc:
+        parser.error(str(exc))
     return args
 
 
-@dataclass
-class Console:
-    quiet: bool = False
-    stage_seconds: dict[str, float] = field(default_factory=dict)
-
-    def say(self, text: str) -> None:
-        if not self.quiet:
-            print(text, file=sys.stderr, flush=True)
-
-    @contextmanager
-    def stage(self, name: str, detail: str = ""):
-        index = STAGES.index(name) + 1
-        self.say(f"[{index}/{len(STAGES)}] {name}{': ' + detail if detail else ''}")
-        started = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.stage_seconds[name] = self.stage_seconds.get(name, 0.0) + time.perf_counter() - started
-
-    def bar(self, total: int, unit: str):
-        from tqdm import tqdm
-
-        return tqdm(total=total, unit=unit, disable=self.quiet, file=sys.stderr, leave=False, dynamic_ncols=True)
+def options_from_args(args: argparse.Namespace) -> Options:
+    return Options(seed=args.seed, units=args.units, checkpoint=args.checkpoint, planner=args.planner,
+                   density=args.density, time_budget=args.time_budget, no_animation=args.no_animation, pad=args.pad,
+                   poses=str(args.poses) if args.poses is not None else None,
+                   accept_prediction=args.accept_prediction, bag_storage=args.bag_storage)
 
 
 def _default_out(parts: Path) -> Path:
     parent = parts.resolve().parent.name if parts.resolve().name == "parts" else parts.resolve().name
     return Path("out") / (parent or "run")
-
-
-def _check_out(out: Path) -> None:
-    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "report.json").exists())):
-        raise BadInput(f"{out}: the output folder exists and does not hold an earlier run (no report.json); "
-                       "choose another --out or remove it")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -136,86 +106,18 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace, console: Console) -> int:
-    from cell.inputs import InputError, load_image, load_masses, load_parts, load_poses
-    from cell.scene import SceneError, load_scene
-    from planning.payload import DEFAULT_DENSITY_KG_M3
-
-    out = args.out or _default_out(args.parts)
-    _check_out(out)
-    try:
-        scene = load_scene(args.scene)
-        parts = load_parts(args.parts, args.units)
-        image = load_image(args.image) if args.image is not None else None
-        given = load_poses(args.poses, parts.names) if args.poses is not None else None
-        given_density = load_masses(args.masses, parts) if args.masses is not None else {}
-    except (InputError, SceneError) as exc:
-        raise BadInput(str(exc)) from exc
-    console.say(f"{len(parts.names)} parts from {args.parts}" + (f", image {args.image}" if image is not None else ""))
-    if given_density:
-        rest = len(parts.names) - len(given_density)
-        console.say(f"masses of {len(given_density)} part(s) from {args.masses}"
-                    + (f"; {rest} other(s) at {args.density or DEFAULT_DENSITY_KG_M3:g} kg/m3" if rest else ""))
-
-    report: dict = {"success": False, "exit_code": None, "failure": None,
-                    "inputs": {"image": str(args.image) if args.image else None, "parts": str(args.parts),
-                               "poses": str(args.poses) if args.poses else None,
-                               "scene": scene.source if args.scene else "scenes/cell.toml", "seed": args.seed,
-                               "units": args.units, "density_kg_m3": args.density or DEFAULT_DENSITY_KG_M3,
-                               "masses": str(args.masses) if args.masses else None},
-                    "stages": console.stage_seconds, "trajectory_duration_s": None,
-                    "world_from_assembly": scene.fixture.world_from_assembly.to_dict(), "parts": []}
-    from cell.pipeline import Pipeline, indented
-
-    pipeline = Pipeline(scene, parts, image, given, args, console, report, given_density)
-    try:
-        pipeline.targets()  # perception or --poses, then repair; bad geometry here is bad input
-        exit_code = pipeline.plan_and_simulate()
-    except StageFailed as failure:
-        report["failure"] = {"stage": failure.stage, "part": failure.part, "message": str(failure)}
-        exit_code = failure.exit_code
-        what = {EXIT_PLANNING: "planning failed", EXIT_SIMULATION: "simulation check failed",
-                EXIT_DISAGREES: "stopped"}[exit_code]
-        print(f"{what} at {failure.stage}"
-              f"{' (part ' + repr(failure.part) + ')' if failure.part else ''}: {indented(str(failure), '    ')}",
-              file=sys.stderr)
-    if given is None:  # success or not, the targets are only as good as the prediction
-        print(PERCEPTION_HINT, file=sys.stderr)
-    report["exit_code"] = exit_code
-    agreement = report.get("picture_agreement")
-    report["built"] = exit_code == EXIT_OK
-    # from a picture, success means built *and* the object built agrees with the picture
-    report["success"] = exit_code == EXIT_OK and (agreement is None or agreement["agrees"])
-    _write_outputs(out, pipeline, report, console)
     from cell.report import summary_table
 
-    print(summary_table(report))
-    verdict = {EXIT_OK: "success" if report["success"] else
-               "built the predicted assembly, which does not match the picture (--accept-prediction)",
-               EXIT_PLANNING: "planning failed", EXIT_SIMULATION: "simulation check failed",
-               EXIT_DISAGREES: "the predicted assembly does not match the picture; nothing planned"}
-    print(f"{verdict[exit_code]}: {out}/ ({', '.join(sorted(p.name for p in out.iterdir()))})")
-    return exit_code
-
-
-PERCEPTION_HINT = ("note: the targets came from the picture, and the bundled model often misplaces parts (Part "
-                   "Accuracy per category in benchmarks/RESULTS.md); the run plans only a predicted assembly whose "
-                   "silhouette matches the picture's (report.json: picture_agreement), and overview.png shows both; "
-                   "give known poses with --poses ASSEMBLY_JSON to check the cell alone")
-
-
-def _write_outputs(out: Path, pipeline, report: dict, console: Console) -> None:
-    """Everything into a fresh sibling folder, then renamed over ``out``: a complete folder or none."""
-    from cell.report import write_json
-    from planning.assembly import replacing_folder
-
-    with replacing_folder(out) as tmp:
-        with console.stage("export", "report, overview, trajectory"):
-            pipeline.write(tmp)
-        write_json(tmp / "report.json", report)
+    out = args.out or _default_out(args.parts)
+    result = run_checked(args.parts, args.image, args.poses, args.scene, out, args.masses, options_from_args(args),
+                         console)
+    print(summary_table(result.report))
+    print(f"{verdict(result.report)}: {out}/ ({', '.join(sorted(p.name for p in out.iterdir()))})")
+    return result.exit_code
 
 
 if __name__ == "__main__":
     sys.exit(main())
 
 
-__all__ = ["main", "Console", "STAGES"]
+__all__ = ["main", "parse_args", "Console", "STAGES", "PERCEPTION_HINT", "check_out"]

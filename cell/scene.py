@@ -1,7 +1,8 @@
 """Typed scene files: the robot cell as data (``scenes/*.toml``), loaded with defaults and validated.
 
 Every field is documented in ``scenes/cell.toml``, the default scene. A value at fault is named with its file
-and key in a :class:`SceneError`.
+and key in a :class:`SceneError`; so is a key the scene format does not have (a misspelling would otherwise leave
+the default in force unnoticed).
 """
 
 from __future__ import annotations
@@ -11,16 +12,24 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+from cell.errors import BadScene
 from planning.payload import PANDA_PAYLOAD_KG
 from planning.pose import Pose
 from planning.robot_limits import DATASHEET_MARGIN_RAD, ROBOT_MODELS, RobotLimits
 from scenes import scenes_root
 
 DEFAULT_SCENE = "cell.toml"
-
-
-class SceneError(ValueError):
-    """A malformed scene file; the message names the file and the key."""
+# every key of the scene format: top-level keys and each table's, the tables of inline poses under "pose"
+SCENE_KEYS = {
+    "": ("random_seed", "robot", "table", "fixture", "kitting", "camera"),
+    "robot": ("urdf", "world_from_base", "home_q", "payload_kg"),
+    "table": ("top_z", "size", "centre_xy"),
+    "fixture": ("world_from_assembly", "upside_down"),
+    "kitting": ("inner_radius", "outer_radius", "pedestal_height", "gap", "jig_margin"),
+    "camera": ("eye", "target", "fov_deg", "width_px", "height_px"),
+    "pose": ("position", "quat_wxyz"),
+}
+SceneError = BadScene  # a malformed scene file; the message names the file and the key
 
 
 @dataclass(frozen=True)
@@ -125,6 +134,7 @@ class _Reader:
         value = self.section(section).get(key)
         if not isinstance(value, dict):
             raise SceneError(f"{self.source}: [{section}] {key} must be {{ position = [...], quat_wxyz = [...] }}")
+        _check_keys(value, "pose", f"[{section}] {key}", self.source)
         sub = _Reader({"pose": value}, self.source)
         position = sub.numbers("pose", "position", 3)
         quat = sub.numbers("pose", "quat_wxyz", 4)
@@ -132,6 +142,19 @@ class _Reader:
             return Pose.from_checked_quat(position, quat)
         except ValueError as exc:
             raise SceneError(f"{self.source}: [{section}] {key}: {exc}") from exc
+
+
+def _check_keys(table: dict, kind: str, where: str, source: str) -> None:
+    """Refuse a key of ``table`` (a table of kind ``kind`` in :data:`SCENE_KEYS`, at ``where``) that the scene
+    format does not have, naming it and the valid keys."""
+    valid = SCENE_KEYS[kind]
+    unknown = [key for key in table if key not in valid]
+    if unknown:
+        import difflib
+
+        close = difflib.get_close_matches(unknown[0], valid, n=1)
+        guess = f" (did you mean {close[0]!r}?)" if close else ""
+        raise SceneError(f"{source}: {where} has no key {unknown[0]!r}{guess}; its keys are {', '.join(valid)}")
 
 
 def _kitting(r: _Reader) -> KittingConfig:
@@ -153,6 +176,10 @@ def load_scene(path: str | Path | None = None) -> Scene:
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise SceneError(f"{path}: not valid TOML ({exc})") from exc
     r = _Reader(data, str(path))
+    _check_keys(data, "", "the top level", str(path))
+    for section in SCENE_KEYS:
+        if section and section != "pose" and isinstance(data.get(section), dict):
+            _check_keys(data[section], section, f"[{section}]", str(path))
     urdf = r.section("robot").get("urdf")
     if not isinstance(urdf, str) or not urdf:
         raise SceneError(f"{path}: [robot] urdf must be a path inside pybullet_data or the scene folder")

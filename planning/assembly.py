@@ -128,7 +128,11 @@ def load_mesh(path: Path, where: str, scale_to_metres: float = 1.0) -> trimesh.T
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types on corrupt files
-        raise AssemblyError(f"{where}: mesh file {path} cannot be read as a mesh ({exc})") from exc
+        # bytes that are neither a binary mesh nor text end in trimesh's search for a text encoding
+        reason = ("its bytes are neither text nor a binary mesh: a corrupt file, or another format under a mesh "
+                  "suffix" if isinstance(exc, (ImportError, UnicodeError)) else str(exc))
+        raise AssemblyError(f"{where}: mesh file {path} cannot be read as a {path.suffix.lower() or 'mesh'} mesh "
+                            f"({reason}); export the part again as .obj, .stl or .ply") from exc
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or len(loaded.vertices) < 3:
         raise AssemblyError(f"{where}: mesh file {path} holds no triangles")
     if not np.all(np.isfinite(loaded.vertices)):

@@ -70,6 +70,13 @@ def _ompl():
     return ob, og, ou
 
 
+def available_planners() -> tuple[str, ...]:
+    """The planners of :data:`PLANNERS` that the installed OMPL provides (what ``MotionSettings.planner`` may
+    name)."""
+    _, og, _ = _ompl()
+    return tuple(name for name in PLANNERS if hasattr(og, name))
+
+
 def query_seed(seed: int, start_q: np.ndarray, goal_q: np.ndarray) -> int:
     """The seed of OMPL's sequence for one query: from ``seed`` (:attr:`MotionSettings.seed`) and the query's start
     and goal configurations (radians, to the last bit), in [1, 2**31 - 1], the same in every process."""

@@ -46,6 +46,17 @@ def test_bad_scene_values_are_named(tmp_path):
         load_scene(path)
     path.write_text(good.replace("upside_down = true", "upside_down = false"))
     assert load_scene(path).fixture.upside_down is False
+    # a misspelled key would leave the default in force unnoticed: refused, naming the key, its table and the keys
+    path.write_text(good.replace("random_seed = 0", "random_sed = 0"))
+    with pytest.raises(SceneError, match=r"scene\.toml: the top level has no key 'random_sed' \(did you mean "
+                       r"'random_seed'\?\); its keys are random_seed, robot, table, fixture, kitting, camera"):
+        load_scene(path)
+    path.write_text(good.replace("jig_margin = 0.12", "jig_margin = 0.12\nclearance = 0.05"))
+    with pytest.raises(SceneError, match=r"\[kitting\] has no key 'clearance'; its keys are inner_radius, "):
+        load_scene(path)
+    path.write_text(good.replace("quat_wxyz = [1.0, 0.0, 0.0, 0.0] }", "quat_wxyz = [1.0, 0.0, 0.0, 0.0], quat = 1 }"))
+    with pytest.raises(SceneError, match=r"\[robot\] world_from_base has no key 'quat' \(did you mean 'quat_wxyz'"):
+        load_scene(path)
     path.write_text("not = [toml")
     with pytest.raises(SceneError, match="not valid TOML"):
         load_scene(path)

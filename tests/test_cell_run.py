@@ -184,8 +184,26 @@ def bad_inputs(tmp: Path, chair: Path) -> dict[str, tuple[list[str], str]]:
                                 "grayscale")
     cases["RGBA image"] = (["--image", str(_png(tmp / "rgba.png", "RGBA", (224, 224))), "--parts", parts],
                            "alpha channel")
-    cases["non-square image"] = (["--image", str(_png(tmp / "wide.png", "RGB", (300, 224))), "--parts", parts],
-                                 "300x224; it must be square")
+    cases["small image"] = (["--image", str(_png(tmp / "small.png", "RGB", (100, 100))), "--parts", parts],
+                            "the image is only 100x100; give at least 224x224")
+    cases["small non-square image"] = (["--image", str(_png(tmp / "strip.png", "RGB", (640, 200))), "--parts",
+                                        parts], "the image is only 640x200; give at least 224x224")
+    image = str(_png(tmp / "black.png", "RGB", (224, 224)))
+    (tmp / "random.pt").write_bytes(np.random.default_rng(0).bytes(4096))
+    cases["checkpoint of random bytes"] = (["--image", image, "--parts", parts, "--checkpoint",
+                                            str(tmp / "random.pt")], "random.pt: not a perception model")
+    (tmp / "notes.pt").write_text("weights: see the shared drive\n")
+    cases["checkpoint of text"] = (["--image", image, "--parts", parts, "--checkpoint", str(tmp / "notes.pt")],
+                                   "notes.pt: not a perception model")
+    cases["missing checkpoint"] = (["--image", image, "--parts", parts, "--checkpoint", str(tmp / "none.pt")],
+                                   "none.pt not found; train them with")
+    scene = tmp / "typo.toml"
+    from cell.scene import DEFAULT_SCENE, scenes_root
+
+    scene.write_text((scenes_root() / DEFAULT_SCENE).read_text().replace("payload_kg = 3.0", "payload_kgg = 1.0"))
+    cases["misspelled scene key"] = (["--parts", parts, "--poses", poses, "--scene", str(scene)],
+                                     "[robot] has no key 'payload_kgg' (did you mean 'payload_kg'?); its keys are "
+                                     "urdf, world_from_base, home_q, payload_kg")
     cases["huge image"] = (["--image", str(_png(tmp / "huge.png", "RGB", (5000, 5000))), "--parts", parts],
                            "larger than 4096x4096")
     cases["missing parts folder"] = (["--parts", str(tmp / "none"), "--poses", poses], "parts folder does not exist")
@@ -197,6 +215,11 @@ def bad_inputs(tmp: Path, chair: Path) -> dict[str, tuple[list[str], str]]:
     corrupt = _parts_folder(tmp / "corrupt", {"a": BOX})
     (corrupt / "b.stl").write_bytes(b"solid \x00\x01garbage")
     cases["corrupt mesh"] = (["--parts", str(corrupt), "--poses", poses], "part 'b'")
+    noise = _parts_folder(tmp / "noise", {"a": BOX})
+    (noise / "b.obj").write_bytes(np.random.default_rng(1).bytes(4096))
+    cases["mesh of random bytes"] = (["--parts", str(noise), "--poses", poses],
+                                     "b.obj cannot be read as a .obj mesh (its bytes are neither text nor a binary "
+                                     "mesh")
     empty_mesh = _parts_folder(tmp / "emptymesh", {"a": BOX})
     (empty_mesh / "b.obj").write_text("# nothing\n")
     cases["empty mesh"] = (["--parts", str(empty_mesh), "--poses", poses], "part 'b'")
@@ -210,6 +233,13 @@ def bad_inputs(tmp: Path, chair: Path) -> dict[str, tuple[list[str], str]]:
     cases["more than 20 parts"] = (["--parts", str(many), "--poses", poses], "21 parts, more than the 20")
     millimetres = _parts_folder(tmp / "mm", {"a": trimesh.creation.box([400.0, 300.0, 20.0])})
     cases["parts in millimetres"] = (["--parts", str(millimetres), "--poses", poses], "--units mm")
+    tiny = _parts_folder(tmp / "tiny", {"a": trimesh.creation.box([0.0004, 0.0003, 0.00002])})
+    cases["parts a thousand times too small"] = (["--parts", str(tiny), "--poses", poses],
+                                                 "is 0.0004 m across (0.4 mm), too small for furniture parts in "
+                                                 "metres")
+    metres = _parts_folder(tmp / "metres", {"a": trimesh.creation.box([0.4, 0.3, 0.02])})
+    cases["metres read as millimetres"] = (["--parts", str(metres), "--poses", poses, "--units", "mm"],
+                                           "the files look like metres: rerun with --units m")
     one = _parts_folder(tmp / "one", {"a": BOX})
     cases["NaN pose"] = (["--parts", str(one), "--poses", str(_poses(tmp / "one", [
         {**_pose_entry("a"), "pose": {"position": [0, float("nan"), 0], "quat_wxyz": [1, 0, 0, 0]}}]))],
@@ -240,12 +270,16 @@ def bad_inputs(tmp: Path, chair: Path) -> dict[str, tuple[list[str], str]]:
               "mass of an unknown part": ('{"seat_1": 1.0}', "mass for 'seat_1', which the parts folder does not"),
               "mass not a number": ('{"a": "heavy"}', "part 'a': mass 'heavy' is not a number of kilograms"),
               "mass below zero": ('{"a": -1}', "part 'a': mass -1 is not a number of kilograms above 0"),
-              "mass in grams": ('{"a": 60}', "part 'a': 60 kg in its 0.1 litres is 6e+05 kg/m3, denser than any")}
+              "mass in grams": ('{"a": 60}', "part 'a': 60 kg in its 0.1 litres is 6e+05 kg/m3, denser than any"),
+              "inline masses not JSON": ("{a: 1}", "--masses '{a: 1}': not valid JSON"),
+              "inline mass of an unknown part": ('{"seat_1": 1.0}', "--masses: mass for 'seat_1', which the parts")}
     (tmp / "weighed").mkdir()
     weighed = str(_poses(tmp / "weighed", [_pose_entry("a")]))
     for case, (text, words) in masses.items():  # BOX: 0.1 litres
         path = text if isinstance(text, Path) else tmp / case.replace(" ", "_") / "masses.json"
-        if not isinstance(text, Path):
+        if case.startswith("inline"):  # the JSON itself on the command line
+            path = text
+        elif not isinstance(text, Path):
             path.parent.mkdir()
             path.write_text(text)
         cases[case] = (["--parts", str(one), "--poses", weighed, "--masses", str(path)], words)
@@ -257,14 +291,18 @@ def bad_inputs(tmp: Path, chair: Path) -> dict[str, tuple[list[str], str]]:
     return cases
 
 
-CASES = ["missing image", "unreadable image", "grayscale image", "RGBA image", "non-square image", "huge image",
-         "missing parts folder", "empty parts folder", "non-mesh file", "corrupt mesh", "empty mesh",
-         "degenerate mesh", "flat mesh", "more than 20 parts", "parts in millimetres", "NaN pose",
+CASES = ["missing image", "unreadable image", "grayscale image", "RGBA image", "small image",
+         "small non-square image", "huge image", "checkpoint of random bytes", "checkpoint of text",
+         "missing checkpoint", "misspelled scene key",
+         "missing parts folder", "empty parts folder", "non-mesh file", "corrupt mesh", "mesh of random bytes",
+         "empty mesh", "degenerate mesh", "flat mesh", "more than 20 parts", "parts in millimetres",
+         "parts a thousand times too small", "metres read as millimetres", "NaN pose",
          "non-unit quaternion",
          "missing pose", "extra pose", "part under the floor", "target out of reach", "part over the payload",
          "parts sunk into each other",
          "missing masses file", "masses not JSON", "masses not an object", "mass of an unknown part",
-         "mass not a number", "mass below zero", "mass in grams"]
+         "mass not a number", "mass below zero", "mass in grams", "inline masses not JSON",
+         "inline mass of an unknown part"]
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -306,6 +344,19 @@ def test_a_time_budget_or_density_out_of_range_is_a_usage_error(option, value, s
         main(["--parts", str(small_chair / "parts"), "--poses", str(small_chair / "assembly.json"), option, value])
     assert exit_info.value.code == 2
     assert f"{option} {float(value):g}:" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("option, value, words", [
+    ("--seed", "-1", "--seed -1: give a whole number from 0 to 4294967295"),
+    ("--seed", "4294967296", "--seed 4294967296: give a whole number from 0 to 4294967295"),
+    ("--planner", "FooPlanner", "--planner FooPlanner: not a planner this cell runs; choose one of RRTConnect, RRT,"),
+    ("--planner", "rrtconnect", "--planner rrtconnect: not a planner this cell runs")])
+def test_a_seed_or_planner_that_cannot_run_is_a_usage_error(option, value, words, small_chair, capsys):
+    """Refused when the arguments are read, not when the planner first runs a minute later."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--parts", str(small_chair / "parts"), "--poses", str(small_chair / "assembly.json"), option, value])
+    assert exit_info.value.code == 2
+    assert words in capsys.readouterr().err
 
 
 def test_the_parts_density_sets_their_weight(tmp_path, capsys):
