@@ -22,7 +22,7 @@ DEFAULT_SCENE = "cell.toml"
 # every key of the scene format: top-level keys and each table's, the tables of inline poses under "pose"
 SCENE_KEYS = {
     "": ("random_seed", "robot", "table", "fixture", "kitting", "camera"),
-    "robot": ("urdf", "world_from_base", "home_q", "payload_kg"),
+    "robot": ("model", "urdf", "world_from_base", "home_q", "payload_kg"),
     "table": ("top_z", "size", "centre_xy"),
     "fixture": ("world_from_assembly", "upside_down"),
     "kitting": ("inner_radius", "outer_radius", "pedestal_height", "gap", "jig_margin"),
