@@ -23,29 +23,24 @@ Exit codes: 0 every object succeeded, 1 at least one did not (the summary says w
 from __future__ import annotations
 
 import argparse
-import ctypes
 import json
 import os
-import re
 import shutil
 import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 from cell.batch_jobs import RUN_OPTIONS, BatchInputError, Job, read_jobs
 from cell.batch_report import FIELDS, STATUSES, progress_line, summary_table, write_junit, write_summary
+from cell.batch_worker import REPORTED_EXITS, remove_partial, run_job
 
 EXIT_ALL_SUCCEEDED, EXIT_SOME_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 DEFAULT_TIMEOUT_S = 1800.0
+STOP_WAIT_S = 15.0  # after Ctrl-C, for the running jobs to be stopped and say so
 STATE_FOLDER = ".batch"  # under --out: <name>.json (fingerprint and record), <name>.log (the job's output)
-POLL_S = 1.0  # how often a running job looks at the clock and the stop signal
-STOP_GRACE_S = 10.0  # after SIGINT, before SIGKILL
-REPORTED_EXITS = (0, 3, 4)  # the cell.run exits that write a complete output folder
 STATUS_OF_EXIT = {0: "success", 1: "internal error", 2: "bad input", 3: "planning failed", 4: "simulation failed"}
 INSTALL_HINT = 'pip install -e ".[cluster]"'
-PACKAGE_ROOT = Path(__file__).resolve().parents[1]  # where the workers' cell.run imports this same code from
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -197,7 +192,7 @@ class Engine:
 
         if self.scheduler:
             self.client = Client(self.scheduler, timeout=30)
-            count = len(self.client.scheduler_info(n_workers=-1)["workers"])
+            count = len(self.client.nthreads())
             self.description = f"the cluster at {self.scheduler} ({count} workers now)"
         else:
             # a worker that dies fails its job at once (not rescheduled by Dask): run() retries it once, and says so.
@@ -227,6 +222,9 @@ class Engine:
         from distributed import KilledWorker, as_completed, wait
 
         pending: dict = {}  # future -> (job, attempt, why the first attempt was retried)
+        # the output folders that are cell.run's to replace: absent, or an earlier run's (a report.json in it)
+        replaceable = {job.name: (out / job.name / "report.json").is_file() or not (out / job.name).exists()
+                       for job in jobs}
 
         def submit(job: Job, attempt: int, retried_after: str | None) -> None:
             _forget(job, out)
@@ -244,8 +242,8 @@ class Engine:
                 submit(job, 2, reason)
                 return
             record = job_record(job, out / job.name, result, attempt, retried_after)
-            if record["out"] is None and (out / job.name / "report.json").is_file():
-                shutil.rmtree(out / job.name, ignore_errors=True)  # not this job's result: an earlier run's, or killed
+            if record["out"] is None and replaceable[job.name]:  # an earlier run's folder, or one a kill cut short
+                shutil.rmtree(out / job.name, ignore_errors=True)
             _remember(job, out, record, result.get("log", ""))
             on_result(job, record)
 
@@ -258,7 +256,7 @@ class Engine:
         except KeyboardInterrupt:
             print("stopping the running jobs (Ctrl-C again to quit at once)", file=sys.stderr, flush=True)
             self.stop.set()  # each running job kills its process; the queued ones return without running
-            wait(list(pending), timeout=STOP_GRACE_S + 2 * POLL_S + 5.0)
+            wait(list(pending), timeout=STOP_WAIT_S)
             for future in list(pending):
                 result = _result(future, KilledWorker) if future.done() else {}
                 if result.get("outcome") != "finished":  # it did not end by itself: stopped, or lost on the way
@@ -359,88 +357,8 @@ def _rounded(value: float | None) -> float | None:
     return None if value is None else round(value, 3)
 
 
-# --- on the worker ---------------------------------------------------------------------------------------------
-
-
-def _die_with_parent_setup():
-    """A function for ``Popen(preexec_fn=...)`` that has Linux send the job SIGINT when the worker thread that
-    started it dies (the worker killed or lost), so that no job outlives its worker; None elsewhere."""
-    if not sys.platform.startswith("linux"):
-        return None
-    prctl, set_parent_death_signal = ctypes.CDLL(None, use_errno=True).prctl, 1  # PR_SET_PDEATHSIG
-    return lambda: prctl(set_parent_death_signal, int(signal.SIGINT))
-
-
-def run_job(arguments: list[str], out: str, timeout_s: float | None, stop_name: str) -> dict:
-    """Run ``python -m cell.run ARGUMENTS --out OUT --quiet`` in its own process (on a Dask worker); kill it past
-    ``timeout_s`` or when the batch's stop event ``stop_name`` is set. Returns ``outcome`` ("finished",
-    "timeout", "stopped"), ``exit_code`` (None unless finished), ``wall_s`` and ``log`` (its output)."""
-    from distributed import Event
-
-    stop = Event(stop_name)
-    if stop.is_set():
-        return {"outcome": "stopped", "exit_code": None, "wall_s": None, "log": ""}
-    folder = Path(out)
-    command = [sys.executable, "-m", "cell.run", *arguments, "--out", str(folder), "--quiet"]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(PACKAGE_ROOT), os.environ.get("PYTHONPATH"))
-                                                       if p)}
-    started = time.perf_counter()
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                               text=True, env=env, cwd=folder.parent, start_new_session=True,
-                               preexec_fn=_die_with_parent_setup())
-    outcome = "finished"
-    while True:
-        try:
-            log, _ = process.communicate(timeout=POLL_S)
-            break
-        except subprocess.TimeoutExpired:
-            if timeout_s is not None and time.perf_counter() - started > timeout_s:
-                outcome = "timeout"
-            elif _is_set(stop):
-                outcome = "stopped"
-            else:
-                continue
-            log = _end(process)
-            if process.returncode in REPORTED_EXITS:  # it had finished by itself, its output complete
-                outcome = "finished"
-            break
-    wall_s = time.perf_counter() - started
-    if outcome != "finished" or process.returncode not in REPORTED_EXITS:
-        remove_partial(folder)
-    return {"outcome": outcome, "exit_code": process.returncode if outcome == "finished" else None,
-            "wall_s": wall_s, "log": log}
-
-
-def _is_set(stop) -> bool:
-    try:
-        return stop.is_set()
-    except Exception:  # the scheduler is unreachable: the worker is going away, and the job with it
-        return False
-
-
-def _end(process: subprocess.Popen) -> str:
-    """Stop ``process`` as Ctrl-C would (cell.run then removes what it was writing), killing it if it lingers."""
-    process.send_signal(signal.SIGINT)
-    try:
-        log, _ = process.communicate(timeout=STOP_GRACE_S)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        log, _ = process.communicate()
-    return log
-
-
-def remove_partial(folder: Path) -> None:
-    """Remove what a killed ``cell.run --out FOLDER`` left half written: its temporary siblings
-    (``planning.assembly.replacing_folder``: ``.<name>.<8 random characters>``)."""
-    pattern = re.compile(rf"\.{re.escape(folder.name)}\.[a-z0-9_]{{8}}")
-    if folder.parent.is_dir():
-        for path in folder.parent.iterdir():
-            if pattern.fullmatch(path.name) and path.is_dir():
-                shutil.rmtree(path, ignore_errors=True)
-
-
 if __name__ == "__main__":
     sys.exit(main())
 
 
-__all__ = ["Engine", "job_record", "main", "remove_partial", "run_batch", "run_job"]
+__all__ = ["Engine", "job_record", "main", "run_batch"]

@@ -128,8 +128,9 @@ def write_junit(path: Path, records: list[dict], suite: str = "cell.batch") -> N
                                                          "time": f"{(r.get('wall_s') or 0.0):.3f}"})
         kind = STATUSES[r["status"]]
         if kind != PASSED:
-            where = f"{r['status']}" + (f" at {r['stage']}" if r.get("stage") else "") + (
-                f" (part {r['part']!r})" if r.get("part") else "")
+            where = f"{r['status']}" + (f" at {r['stage']}" if r.get("stage") else "")
+            if r.get("part") and repr(r["part"]) not in (r.get("message") or ""):
+                where += f" (part {r['part']!r})"
             message = f"{where}: {_first_line(r.get('message'), 500)}" if r.get("message") else where
             element = ET.SubElement(case, kind, {"message": message, "type": r["status"]})
             if kind != SKIPPED:
