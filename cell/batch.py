@@ -201,7 +201,7 @@ class Engine:
             try:
                 with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
                     self.cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
-                                                dashboard_address=None, memory_limit=0, silence_logs=logging.ERROR)
+                                                dashboard_address=None, memory_limit=0, silence_logs=logging.CRITICAL)
             finally:
                 signal.signal(signal.SIGINT, interrupt)
             self.client = Client(self.cluster)
@@ -269,8 +269,8 @@ class Engine:
 def _result(future, killed_worker) -> dict:
     try:
         return future.result()
-    except killed_worker as exc:
-        return {"outcome": "worker lost", "exit_code": None, "wall_s": None, "log": f"{exc}"}
+    except killed_worker:
+        return {"outcome": "worker lost", "exit_code": None, "wall_s": None, "log": ""}
     except Exception as exc:  # the task itself failed before or around the process (it is not cell.run's error)
         return {"outcome": "crashed", "exit_code": None, "wall_s": None, "log": f"{type(exc).__name__}: {exc}"}
 
@@ -304,6 +304,8 @@ def _retry_reason(result: dict) -> str | None:
 def _first_words(result: dict, timeout_s: float | None) -> str:
     if result["outcome"] == "timeout":
         return f"killed after {timeout_s:g} s"
+    if result["outcome"] == "worker lost":
+        return "its worker process died"
     return _error_message(result.get("log", "")).split("\n")[0][:120] or result["outcome"]
 
 
@@ -325,7 +327,8 @@ def job_record(job: Job, folder: Path, result: dict, attempts: int = 1, retried_
     if outcome == "timeout":
         record.update(status="timeout", message=f"killed after {job.timeout_s:g} s (--timeout)")
     elif outcome == "worker lost":
-        record.update(status="worker lost", message=f"the worker running it died: {result['log']}")
+        record.update(status="worker lost", message="the worker process running it died (killed, out of memory, or "
+                      "its machine lost)")
     elif outcome in ("stopped", "not run"):
         record.update(status="interrupted" if outcome == "stopped" and result["wall_s"] else "not run")
     elif outcome == "crashed":

@@ -108,8 +108,9 @@ def summary_table(records: list[dict]) -> str:
     lines.insert(1, "  ".join("-" * w for w in widths))
     tally = counts(records)
     lines.append("")
-    lines.append(f"{tally['objects']} objects: {tally[PASSED]} succeeded, {tally[FAILED]} failed, "
-                 f"{tally[ERROR]} errors, {tally[SKIPPED]} not run")
+    objects = f"{tally['objects']} object{'s' * (tally['objects'] != 1)}"
+    lines.append(f"{objects}: {tally[PASSED]} succeeded, {tally[FAILED]} failed, {tally[ERROR]} errors, "
+                 f"{tally[SKIPPED]} not run")
     return "\n".join(lines)
 
 
