@@ -37,6 +37,7 @@ from cell.batch_worker import REPORTED_EXITS, remove_partial, run_job
 
 EXIT_ALL_SUCCEEDED, EXIT_SOME_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 DEFAULT_TIMEOUT_S = 1800.0
+SCHEDULER_TIMEOUT_S = 30.0  # to reach an existing cluster's scheduler
 STOP_WAIT_S = 15.0  # after Ctrl-C, for the running jobs to be stopped and say so
 STATE_FOLDER = ".batch"  # under --out: <name>.json (fingerprint and record), <name>.log (the job's output)
 STATUS_OF_EXIT = {0: "success", 1: "internal error", 2: "bad input", 3: "planning failed", 4: "simulation failed"}
@@ -52,19 +53,21 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--workers", type=int, help="local cluster: worker processes, one job each at a time "
                         "(default: the cores)")
     parser.add_argument("--scheduler", metavar="ADDRESS", help="an existing Dask cluster's scheduler "
-                        "(tcp://host:8786) instead of a local cluster; its workers must see the same paths")
+                        "(tcp://host:8786, or its scheduler file, a .json) instead of a local cluster; its workers "
+                        "must see the same paths")
     parser.add_argument("--junit", type=Path, metavar="FILE", help="write a JUnit XML report: one test case per object")
     parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="S",
                         help=f"seconds before a job's process is killed (default {DEFAULT_TIMEOUT_S:.0f})")
     parser.add_argument("--rerun", action="store_true", help="run every job again, even those already complete")
     defaults = parser.add_argument_group("cell.run options for every job (a job list's own value wins)")
     for key, option in RUN_OPTIONS.items():
-        if option.kind == "switch":
+        if option.kind == "switch":  # given: the job's value is false
             defaults.add_argument(option.flag, dest=key, action="store_false", default=None,
-                                  help=f"not: {option.help}")
+                                  help=f"{option.flag.removeprefix('--').replace('-', ' ')} ({key} false)")
         else:
             kind = {"int": int, "float": float, "path": Path}.get(option.kind, str)
-            defaults.add_argument(option.flag, dest=key, type=kind, help=option.help)
+            defaults.add_argument(option.flag, dest=key, type=kind, help=option.help,
+                                  choices=["m", "cm", "mm"] if option.kind == "units" else None)
     args = parser.parse_args(argv)
     if args.workers is not None and args.scheduler:
         parser.error("--workers sizes the local cluster; an existing cluster (--scheduler) has its own workers")
@@ -130,7 +133,6 @@ def run_batch(jobs: list[Job], out: Path, workers: int | None = None, scheduler:
 
     interrupted = False
     if to_run:
-        out.mkdir(parents=True, exist_ok=True)
         try:
             with Engine(workers, scheduler) as engine:
                 print(f"{len(to_run)} of {total} objects to run on {engine.description}"
@@ -138,6 +140,9 @@ def run_batch(jobs: list[Job], out: Path, workers: int | None = None, scheduler:
                 engine.run(to_run, out, on_result)
         except KeyboardInterrupt:
             interrupted = True
+        except BatchInputError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
     final = [records.get(job.name) or _not_run(job) for job in jobs]
     write_summary(out, final, time.perf_counter() - started)
     if junit is not None:
@@ -191,7 +196,13 @@ class Engine:
         from distributed import Client, Event, LocalCluster
 
         if self.scheduler:
-            self.client = Client(self.scheduler, timeout=30)
+            where = {"scheduler_file": self.scheduler} if self.scheduler.endswith(".json") else {
+                "address": self.scheduler}
+            try:
+                self.client = Client(**where, timeout=SCHEDULER_TIMEOUT_S)
+            except (OSError, ValueError) as exc:  # unreachable (OSError covers timeouts), or not an address
+                raise BatchInputError(f"--scheduler {self.scheduler}: no Dask scheduler reached ({exc}); start one "
+                                      "with `dask scheduler` (docs/batch.md)") from exc
             count = len(self.client.nthreads())
             self.description = f"the cluster at {self.scheduler} ({count} workers now)"
         else:
@@ -221,6 +232,7 @@ class Engine:
         KeyboardInterrupt is raised again."""
         from distributed import KilledWorker, as_completed, wait
 
+        out.mkdir(parents=True, exist_ok=True)
         pending: dict = {}  # future -> (job, attempt, why the first attempt was retried)
         # the output folders that are cell.run's to replace: absent, or an earlier run's (a report.json in it)
         replaceable = {job.name: (out / job.name / "report.json").is_file() or not (out / job.name).exists()
