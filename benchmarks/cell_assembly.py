@@ -84,33 +84,32 @@ def record_of(name: str, parts: int, result: dict, out: Path) -> dict:
 
 
 def run_scaled(objects: list[tuple[str, Assembly]], engine: Engine, work: Path, keep: Path | None, on_record) -> None:
-    """Run every (label, assembly) through ``python -m cell.run`` on the batch ``engine`` (each in its own process),
-    then those too big for the cell again at each smaller scale; ``on_record(label, record)`` as each is final."""
+    """Run every (label, assembly) through ``python -m cell.run`` on the batch ``engine`` (each in its own process);
+    one too big for the cell runs again at the next smaller scale as soon as that is known. ``on_record(label,
+    record)`` as each object's record is final."""
     runs = keep or work / "runs"
-    todo = list(objects)
-    for factor in SCALES:
-        jobs, sources = [], {}
-        for label, assembly in todo:
-            folder = write_assembly(scaled(assembly, factor) if factor != 1.0 else assembly,
-                                    work / f"scale_{factor}" / assembly.name, overwrite=True)
-            job = Job(f"{assembly.name}_out", str(folder), folder / "parts", folder / "assembly.json",
-                      options={"animation": False}, timeout_s=JOB_TIMEOUT_S)
-            jobs.append(job)
-            sources[job.name] = (label, assembly)
-        todo = []
+    sources = {}  # job name -> (label, assembly, scale)
 
-        def on_result(job: Job, result: dict, factor=factor, sources=sources, next_round=todo) -> None:
-            label, assembly = sources[job.name]
-            record = record_of(assembly.name, len(assembly.parts), result, runs / job.name)
-            record["scale"] = factor
-            message = (record.get("failure") or {}).get("message", "")
-            too_big = any(words in message for words in TOO_BIG) or BEYOND_REACH_FIRST in message.split("\n")[0]
-            if too_big and factor != SCALES[-1]:
-                next_round.append((label, assembly))
-            else:
-                on_record(label, record)
+    def job_at(label: str, assembly: Assembly, factor: float) -> Job:
+        folder = write_assembly(scaled(assembly, factor) if factor != 1.0 else assembly,
+                                work / f"scale_{factor}" / assembly.name, overwrite=True)
+        job = Job(f"{assembly.name}_out", str(folder), folder / "parts", folder / "assembly.json",
+                  options={"animation": False}, timeout_s=JOB_TIMEOUT_S)
+        sources[job.name] = (label, assembly, factor)
+        return job
 
-        engine.run(jobs, runs, on_result)
+    def on_result(job: Job, result: dict) -> list[Job]:
+        label, assembly, factor = sources[job.name]
+        record = record_of(assembly.name, len(assembly.parts), result, runs / job.name)
+        record["scale"] = factor
+        message = (record.get("failure") or {}).get("message", "")
+        too_big = any(words in message for words in TOO_BIG) or BEYOND_REACH_FIRST in message.split("\n")[0]
+        if too_big and factor != SCALES[-1]:
+            return [job_at(label, assembly, SCALES[SCALES.index(factor) + 1])]
+        on_record(label, record)
+        return []
+
+    engine.run([job_at(label, assembly, 1.0) for label, assembly in objects], runs, on_result)
 
 
 def med(values: list[float]) -> str:

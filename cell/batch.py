@@ -23,6 +23,7 @@ Exit codes: 0 every object succeeded, 1 at least one did not (the summary says w
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import shutil
@@ -228,20 +229,23 @@ class Engine:
 
     def run(self, jobs: list[Job], out: Path, on_result) -> None:
         """Run ``jobs`` into ``out/<name>``, calling ``on_result(job, record)`` as each ends (retried once after a
-        crash, a timeout or a lost worker). On Ctrl-C the running jobs are stopped, each reported, then
+        crash, a timeout or a lost worker); ``on_result`` may return more jobs to run (a job of a name that has
+        ended replaces its output folder). On Ctrl-C the running jobs are stopped, each reported, then
         KeyboardInterrupt is raised again."""
         from distributed import KilledWorker, as_completed, wait
 
         out.mkdir(parents=True, exist_ok=True)
         pending: dict = {}  # future -> (job, attempt, why the first attempt was retried)
-        # the output folders that are cell.run's to replace: absent, or an earlier run's (a report.json in it)
-        replaceable = {job.name: (out / job.name / "report.json").is_file() or not (out / job.name).exists()
-                       for job in jobs}
+        count = itertools.count(1)  # of the tasks: each its own key, even for one name
+        replaceable: dict[str, bool] = {}  # name -> its output folder is cell.run's: absent, or a run's (a report)
 
         def submit(job: Job, attempt: int, retried_after: str | None) -> None:
+            if attempt == 1:
+                folder = out / job.name
+                replaceable[job.name] = (folder / "report.json").is_file() or not folder.exists()
             _forget(job, out)
             future = self.client.submit(run_job, job.run_arguments(), str(out / job.name), job.timeout_s,
-                                        self.stop_name, key=f"cell.run-{job.name}-{attempt}-{self.stop_name[-8:]}",
+                                        self.stop_name, key=f"cell.run-{job.name}-{next(count)}-{self.stop_name[-8:]}",
                                         pure=False)
             pending[future] = (job, attempt, retried_after)
             completed.add(future)
@@ -257,7 +261,9 @@ class Engine:
             if record["out"] is None and replaceable[job.name]:  # an earlier run's folder, or one a kill cut short
                 shutil.rmtree(out / job.name, ignore_errors=True)
             _remember(job, out, record, result.get("log", ""))
-            on_result(job, record)
+            for more in on_result(job, record) or ():
+                if not self.stop.is_set():
+                    submit(more, 1, None)
 
         completed = as_completed()
         try:
