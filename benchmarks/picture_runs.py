@@ -9,10 +9,11 @@ Each object is a held-out test object of ``benchmarks/perception_accuracy.py`` (
 assembly folder of real furniture (never trained on). Its picture is rendered as a user would render it
 (``python -m cell.render OBJECT --out OUT/pictures/NAME.png --seed 0``), then the whole command runs in its own
 process on that picture and the loose parts (bundled weights, ``--no-animation``, seed 0; output under
-``OUT/runs/NAME``; ``--density`` is passed on). Prints a Markdown table: per object the exit code, the stage
-that failed, the wall time, the deepest overlap left after the pose repair (what ``cell.run`` refuses above 30 mm)
-and the start of the failure's message. A success means the cell built the *predicted* assembly; each run's
-``overview.png`` shows how far that is from the picture.
+``OUT/runs/NAME``, its log in ``OUT/runs/.batch/``; ``--density`` is passed on), as a job of ``python -m
+cell.batch``: one after another, or ``--workers N`` side by side on a local Dask cluster. Prints a Markdown table:
+per object the exit code, the stage that failed, the wall time, the deepest overlap left after the pose repair
+(what ``cell.run`` refuses above 30 mm) and the start of the failure's message. A success means the cell built
+the *predicted* assembly; each run's ``overview.png`` shows how far that is from the picture.
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ import numpy as np
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from cell.batch import Engine  # noqa: E402
+from cell.batch_jobs import Job  # noqa: E402
 from perception.synth import generate  # noqa: E402
 from planning.assembly import write_assembly  # noqa: E402
 
@@ -49,28 +52,28 @@ def held_out_object(category: str, level: str, index: int, out: Path) -> tuple[s
     return name, folder
 
 
-def run_object(name: str, folder: Path, out: Path, timeout_s: float, density_kg_m3: float | None = None) -> dict:
-    """Render the assembly folder ``folder`` and run the cell on its picture and loose parts; its record."""
+def render_picture(name: str, folder: Path, out: Path) -> Path:
+    """Render the assembly folder ``folder`` as a user would (``python -m cell.render``): ``OUT/pictures/NAME.png``."""
     picture = out / "pictures" / f"{name}.png"
     picture.parent.mkdir(parents=True, exist_ok=True)
     subprocess.run([sys.executable, "-m", "cell.render", str(folder), "--out", str(picture), "--seed", "0"],
                    cwd=ROOT, check=True, capture_output=True)
-    run_out = out / "runs" / name
-    start = time.perf_counter()
-    try:
-        result = subprocess.run([sys.executable, "-m", "cell.run", "--image", str(picture), "--parts",
-                                 str(folder / "parts"), "--out", str(run_out), "--no-animation", "--quiet",
-                                 "--seed", "0"] + ([] if density_kg_m3 is None else ["--density", str(density_kg_m3)]),
-                                cwd=ROOT, capture_output=True, text=True, timeout=timeout_s)
-        exit_code = result.returncode
-        last_error = (result.stderr.strip().splitlines() or [""])[-1]
-    except subprocess.TimeoutExpired:
-        exit_code, last_error = None, ""
-    record = {"object": name, "exit_code": exit_code, "seconds": time.perf_counter() - start, "stage": None,
-              "deepest_overlap_after_repair_mm": None, "why": last_error}
-    report_path = run_out / "report.json"
-    if exit_code in (0, 3, 4):  # the exits that write a report (exit 1 and 2 leave an earlier run's folder as it was)
-        report = json.loads(report_path.read_text())
+    return picture
+
+
+def picture_job(name: str, folder: Path, picture: Path, timeout_s: float, density_kg_m3: float | None) -> Job:
+    """The cell on the picture and the loose parts: a job of ``python -m cell.batch``."""
+    options = {"seed": 0, "animation": False} | ({} if density_kg_m3 is None else {"density": density_kg_m3})
+    return Job(name, str(folder), folder / "parts", image=picture, options=options, timeout_s=timeout_s)
+
+
+def record_of(name: str, result: dict, run_out: Path) -> dict:
+    """An object's record from its batch record (``cell.batch``) and, where written, its ``report.json``."""
+    why = (result["message"] or "").strip().split("\n")[0] if result["status"] != "timeout" else ""
+    record = {"object": name, "exit_code": result["exit_code"], "status": result["status"],
+              "seconds": result["wall_s"], "stage": None, "deepest_overlap_after_repair_mm": None, "why": why}
+    if result["out"] is not None:  # the exits that write a report (0, 3, 4)
+        report = json.loads((run_out / "report.json").read_text())
         record["stage"] = (report.get("failure") or {}).get("stage")
         record["why"] = (report.get("failure") or {}).get("message", "")
         pairs = report.get("repair", {}).get("overlapping_pairs_after", [])
@@ -91,6 +94,9 @@ def main() -> None:
                         "in name order; --first and --count select among them)")
     parser.add_argument("--only", nargs="+", metavar="NAME", help="with --furniture: only these folders")
     parser.add_argument("--density", type=float, help="the parts' density for python -m cell.run (kg/m3)")
+    parser.add_argument("--workers", type=int, default=1, help="objects run side by side on a local cluster "
+                        "(default 1: one after another)")
+    parser.add_argument("--scheduler", metavar="ADDRESS", help="run on an existing Dask cluster instead")
     args = parser.parse_args()
     if args.furniture is not None:
         from perception.evaluate_assemblies import assembly_folders
@@ -116,11 +122,20 @@ def main() -> None:
         objects = [held_out_object(category, level, index, args.out)
                    for index in range(args.first, args.first + args.count)]
         described = f"{category} {level}, test objects {args.first}-{args.first + args.count - 1}"
-    records = []
-    for name, folder in objects:
-        record = run_object(name, folder, args.out, args.timeout, args.density)
-        records.append(record)
-        print(f"{record['object']}: exit {record['exit_code']}, {record['seconds']:.0f} s", flush=True)
+    jobs = [picture_job(name, folder, render_picture(name, folder, args.out), args.timeout, args.density)
+            for name, folder in objects]
+    finished: dict[str, dict] = {}
+
+    def on_result(job: Job, result: dict) -> None:
+        record = finished[job.name] = record_of(job.name, result, args.out / "runs" / job.name)
+        print(f"{record['object']}: exit {record['exit_code']}, {record['seconds'] or 0:.0f} s", flush=True)
+
+    started = time.perf_counter()
+    with Engine(args.workers, args.scheduler) as engine:
+        print(f"running {len(jobs)} objects on {engine.description}", flush=True)
+        engine.run(jobs, args.out / "runs", on_result)
+    print(f"wall clock: {time.perf_counter() - started:.0f} s for {len(jobs)} objects", flush=True)
+    records = [finished[name] for name, _ in objects]
     (args.out / "records.json").write_text(json.dumps(records, indent=1))
     density = f", --density {args.density:g}" if args.density is not None else ""
     print(f"\nMachine: {platform.machine()}, {len(os.sched_getaffinity(0))} cores. {described}{density}.\n")
@@ -128,10 +143,11 @@ def main() -> None:
     print("|---|---|---|---|---|---|")
     for r in records:
         overlap = "-" if r["deepest_overlap_after_repair_mm"] is None else f"{r['deepest_overlap_after_repair_mm']:.0f}"
-        exit_code = "timeout" if r["exit_code"] is None else r["exit_code"]
+        exit_code = r["status"] if r["exit_code"] is None else r["exit_code"]  # a timeout, a lost worker
         first = r["why"].split("\n")[0]  # a planning failure's first line: the scene's own placement of the jig
         why = first if len(first) <= WHY_CHARS else first[:WHY_CHARS - 3].rstrip() + "..."
-        print(f"| {r['object']} | {exit_code} | {r['stage'] or '-'} | {r['seconds']:.0f} | {overlap} | "
+        seconds = "-" if r["seconds"] is None else f"{r['seconds']:.0f}"
+        print(f"| {r['object']} | {exit_code} | {r['stage'] or '-'} | {seconds} | {overlap} | "
               f"{why.replace('|', '/') or '-'} |")
     done = [r for r in records if r["exit_code"] == 0]
     print(f"\nexit 0: {len(done)} of {len(records)}")
