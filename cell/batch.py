@@ -41,7 +41,8 @@ DEFAULT_TIMEOUT_S = 1800.0
 SCHEDULER_TIMEOUT_S = 30.0  # to reach an existing cluster's scheduler
 STOP_WAIT_S = 15.0  # after Ctrl-C, for the running jobs to be stopped and say so
 STATE_FOLDER = ".batch"  # under --out: <name>.json (fingerprint and record), <name>.log (the job's output)
-STATUS_OF_EXIT = {0: "success", 1: "internal error", 2: "bad input", 3: "planning failed", 4: "simulation failed"}
+STATUS_OF_EXIT = {0: "success", 1: "internal error", 2: "bad input", 3: "planning failed", 4: "simulation failed",
+                  5: "disagrees with picture"}
 INSTALL_HINT = 'pip install -e ".[cluster]"'
 
 
@@ -62,9 +63,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--rerun", action="store_true", help="run every job again, even those already complete")
     defaults = parser.add_argument_group("cell.run options for every job (a job list's own value wins)")
     for key, option in RUN_OPTIONS.items():
-        if option.kind == "switch":  # given: the job's value is false
-            defaults.add_argument(option.flag, dest=key, action="store_false", default=None,
-                                  help=f"{option.flag.removeprefix('--').replace('-', ' ')} ({key} false)")
+        if option.kind in ("switch", "flag"):  # given: the job's value is false (a switch) or true (a flag)
+            value = option.kind == "flag"
+            defaults.add_argument(option.flag, dest=key, action="store_true" if value else "store_false",
+                                  default=None, help=f"{option.flag.removeprefix('--').replace('-', ' ')} ({key} "
+                                  f"{str(value).lower()})")
         else:
             kind = {"int": int, "float": float, "path": Path}.get(option.kind, str)
             defaults.add_argument(option.flag, dest=key, type=kind, help=option.help,
@@ -314,7 +317,7 @@ def _retry_reason(result: dict) -> str | None:
     if result["outcome"] in ("timeout", "worker lost", "crashed"):
         return result["outcome"]
     code = result["exit_code"]
-    if result["outcome"] == "finished" and code not in (0, 2, 3, 4):
+    if result["outcome"] == "finished" and code not in (0, 2, 3, 4, 5):
         return "internal error" if code == 1 else "crashed"
     return None
 

@@ -11,7 +11,8 @@ given) or a ``.json`` file (a list of objects). A job's keys:
   ``poses`` = its ``assembly.json``
 - ``parts``, ``poses``, ``image``: as ``cell.run --parts``, ``--poses``, ``--image`` (``poses`` or ``image``)
 - the options of ``cell.run`` (:data:`RUN_OPTIONS`): ``seed``, ``units``, ``scene``, ``checkpoint``,
-  ``planner``, ``density``, ``masses``, ``time_budget``, ``animation`` (true or false)
+  ``planner``, ``density``, ``masses``, ``time_budget``, ``animation`` and ``accept_prediction`` (true or false),
+  ``bag_storage``
 - ``timeout``: seconds before this job's process is killed (default ``--timeout``)
 
 Relative paths in a job list are relative to the list's folder. Every problem raises :class:`BatchInputError`
@@ -42,7 +43,8 @@ class BatchInputError(ValueError):
 @dataclass(frozen=True)
 class RunOption:
     flag: str  # cell.run's option
-    kind: str  # "int", "float", "text", "path", "units" or "switch" (a switch given false adds the flag)
+    kind: str  # "int", "float", "text", "path", "units", "switch" (given false adds the flag) or "flag" (given true
+    # adds it)
     help: str
 
 
@@ -57,6 +59,9 @@ RUN_OPTIONS = {
     "masses": RunOption("--masses", "path", "known part masses, a JSON file"),
     "time_budget": RunOption("--time-budget", "float", "seconds of kitting and motion planning per build"),
     "animation": RunOption("--no-animation", "switch", "write animation.gif (true or false)"),
+    "accept_prediction": RunOption("--accept-prediction", "flag", "build a prediction that does not match its "
+                                   "picture (true or false)"),
+    "bag_storage": RunOption("--bag-storage", "text", "the ROS 2 bag's storage: mcap or sqlite3"),
 }
 JOB_KEYS = ("name", "assembly", "parts", "poses", "image", "timeout", *RUN_OPTIONS)
 
@@ -82,8 +87,8 @@ class Job:
             arguments += ["--image", str(self.image)]
         for key, value in sorted(self.options.items()):
             option = RUN_OPTIONS[key]
-            if option.kind == "switch":
-                arguments += [] if value else [option.flag]
+            if option.kind in ("switch", "flag"):
+                arguments += [option.flag] if value == (option.kind == "flag") else []
             else:
                 arguments += [option.flag, str(value)]
         return arguments
@@ -240,7 +245,7 @@ def _value(value, kind: str, key: str, where: str):
             if not math.isfinite(number):
                 raise ValueError
             return number
-        if kind == "switch":
+        if kind in ("switch", "flag"):
             words = {"true": True, "yes": True, "1": True, "false": False, "no": False, "0": False}
             if isinstance(value, bool):
                 return value
@@ -251,7 +256,7 @@ def _value(value, kind: str, key: str, where: str):
             return value
         return str(value)
     except (ValueError, KeyError, TypeError):
-        expected = {"int": "a whole number", "float": "a number", "switch": "true or false",
+        expected = {"int": "a whole number", "float": "a number", "switch": "true or false", "flag": "true or false",
                     "units": "m, cm or mm"}.get(kind, "text")
         raise BatchInputError(f"{where}: {key} {value!r}: expected {expected}") from None
 

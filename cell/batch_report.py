@@ -26,7 +26,8 @@ FIELDS = ("name", "status", "exit_code", "stage", "part", "message", "wall_s", "
           "retried_after", "resumed", "out")
 # status -> how a CI system sees the object's test case
 PASSED, FAILED, ERROR, SKIPPED = "passed", "failure", "error", "skipped"
-STATUSES = {"success": PASSED, "planning failed": FAILED, "simulation failed": FAILED, "bad input": ERROR,
+STATUSES = {"success": PASSED, "planning failed": FAILED, "simulation failed": FAILED,
+            "disagrees with picture": FAILED, "bad input": ERROR,
             "internal error": ERROR, "crashed": ERROR, "timeout": ERROR, "worker lost": ERROR,
             "interrupted": SKIPPED, "not run": SKIPPED}
 MESSAGE_CHARS = 60  # of a failure's message in the printed table (the summary keeps it whole)

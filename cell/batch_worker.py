@@ -13,8 +13,11 @@ import sys
 import time
 from pathlib import Path
 
+from cell.errors import EXIT_DISAGREES, EXIT_OK, EXIT_PLANNING, EXIT_SIMULATION
+
 POLL_S = 1.0  # how often a running job looks at the clock and the stop signal
-REPORTED_EXITS = (0, 3, 4)  # the cell.run exits that write a complete output folder
+# the cell.run exits that write a complete output folder
+REPORTED_EXITS = (EXIT_OK, EXIT_PLANNING, EXIT_SIMULATION, EXIT_DISAGREES)
 PACKAGE_ROOT = Path(__file__).resolve().parents[1]  # where the job's cell.run imports this same code from
 
 

@@ -16,6 +16,7 @@ import sys
 # subcommand -> (its python -m form, the module whose main(argv) runs it, what it does)
 COMMANDS = {
     "run": ("cell.run", "cell.run", "picture (or poses) and parts in, a verified robot assembly program out"),
+    "batch": ("cell.batch", "cell.batch", "many objects at once on a Dask cluster: summaries and a JUnit report"),
     "sequence": ("planning.sequence", "planning.sequence", "the assembly sequence of an assembly folder"),
     "render": ("cell.render", "cell.render", "render an assembly folder from a random view"),
     "synth": ("perception.synth", "perception.synth.__main__", "write procedural furniture as assembly folders"),

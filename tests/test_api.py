@@ -121,7 +121,7 @@ def test_the_command_prints_its_version_and_lists_its_subcommands():
     listed = subprocess.run([sys.executable, "-m", "cell.cli", "--help"], capture_output=True, text=True, cwd=ROOT,
                             timeout=60)
     assert listed.returncode == 0
-    for name in ("run", "sequence", "synth", "render", "train", "evaluate"):
+    for name in ("run", "batch", "sequence", "synth", "render", "train", "evaluate"):
         assert f"  {name} " in listed.stdout
     assert cli_main(["assemble"]) == 2
 
@@ -142,4 +142,4 @@ def test_each_subcommand_runs_its_module(tmp_path, capsys):
     assert usage.value.code == 2 and "give --image" in capsys.readouterr().err
     assert cli_main(["run", "--parts", str(tmp_path / "none"), "--poses", str(a / "assembly.json")]) == 2
     assert "parts folder does not exist" in capsys.readouterr().err
-    assert set(COMMANDS) >= {"run", "sequence", "synth", "render", "train", "evaluate"}
+    assert set(COMMANDS) >= {"run", "batch", "sequence", "synth", "render", "train", "evaluate"}
