@@ -32,7 +32,10 @@ from planning.payload import DEFAULT_DENSITY_KG_M3
 from planning.pose import Pose
 from planning.robot_limits import robot_limits
 
-MIN_SILHOUETTE_IOU = 0.80  # a predicted assembly agrees with its picture from this silhouette IoU on (RESULTS.md)
+# a predicted assembly agrees with its picture from this silhouette IoU and this F1 of the edges between its parts
+# on (perception.agreement; calibrated by benchmarks/picture_agreement.py, RESULTS.md)
+MIN_SILHOUETTE_IOU = 0.80
+MIN_EDGE_F1 = 0.40
 REPAIR_GIVEN_POSES = False  # given (--poses) targets are taken as they are; predicted ones are repaired
 MAX_BELOW_FLOOR_M = 0.001  # given targets may reach this far under the floor (z = 0; rounding, a model's feet)
 ANIMATION_FRAME_S = 0.4  # simulated seconds between the frames of animation.gif
@@ -169,25 +172,32 @@ class Pipeline:
 
     def _check_picture_agreement(self) -> None:
         """The repaired targets drawn with the picture's camera against the object in the picture
-        (:mod:`perception.agreement`); below :data:`MIN_SILHOUETTE_IOU` the run stops (exit 5) unless
-        ``--accept-prediction`` asks to build it anyway."""
+        (:mod:`perception.agreement`): below :data:`MIN_SILHOUETTE_IOU` or :data:`MIN_EDGE_F1` the run stops
+        (exit 5) unless ``--accept-prediction`` asks to build it anyway."""
         from perception.agreement import picture_agreement
 
         camera_from_assembly = self.prediction.camera_from_assembly
         agreement = picture_agreement(self.object_mask, self.target.part_names,
                                       [p.mesh for p in self.target.parts],
-                                      [camera_from_assembly @ p.assembly_from_part for p in self.target.parts])
+                                      [camera_from_assembly @ p.assembly_from_part for p in self.target.parts],
+                                      image=self.image)
         self.agreement = agreement
-        agrees = agreement.silhouette_iou >= MIN_SILHOUETTE_IOU
+        shortfalls = []
+        if agreement.silhouette_iou < MIN_SILHOUETTE_IOU:
+            shortfalls.append(f"silhouette IoU {agreement.silhouette_iou:.2f} < {MIN_SILHOUETTE_IOU:.2f}")
+        if agreement.edge_f1 < MIN_EDGE_F1:
+            shortfalls.append(f"edges between parts F1 {agreement.edge_f1:.2f} < {MIN_EDGE_F1:.2f}")
+        agrees = not shortfalls
         accepted = bool(getattr(self.args, "accept_prediction", False))
         self.report["picture_agreement"] = {**agreement.to_dict(), "min_silhouette_iou": MIN_SILHOUETTE_IOU,
-                                            "agrees": agrees, "accepted_anyway": accepted and not agrees}
+                                            "min_edge_f1": MIN_EDGE_F1, "agrees": agrees,
+                                            "accepted_anyway": accepted and not agrees}
         for name, fraction in agreement.on_object.items():
             self.entries[name]["on_object"] = round(fraction, 4)
         worst = agreement.worst_part()
-        words = (f"silhouette IoU {agreement.silhouette_iou:.2f} (at least {MIN_SILHOUETTE_IOU:.2f} agrees); part "
-                 f"{worst[0]!r} lies {100 * worst[1]:.0f}% on the object")
-        self.console.say(f"    agreement with the picture: {words}")
+        self.console.say(f"    agreement with the picture: silhouette IoU {agreement.silhouette_iou:.2f} (at least "
+                         f"{MIN_SILHOUETTE_IOU:.2f} agrees), edges between parts F1 {agreement.edge_f1:.2f} (at "
+                         f"least {MIN_EDGE_F1:.2f}); part {worst[0]!r} lies {100 * worst[1]:.0f}% on the object")
         if agrees:
             return
         if accepted:
@@ -195,11 +205,10 @@ class Pipeline:
                              "(--accept-prediction)")
             return
         raise StageFailed(EXIT_DISAGREES, "repair",
-                          f"the predicted assembly does not match the picture: silhouette IoU "
-                          f"{agreement.silhouette_iou:.2f} < {MIN_SILHOUETTE_IOU:.2f} (part {worst[0]!r} lies "
-                          f"{100 * worst[1]:.0f}% on the object); overview.png shows both. Nothing was planned: give "
-                          "the true poses with --poses, or build the prediction anyway with --accept-prediction",
-                          worst[0])
+                          f"the predicted assembly does not match the picture: {'; '.join(shortfalls)} (part "
+                          f"{worst[0]!r} lies {100 * worst[1]:.0f}% on the object); overview.png shows both. Nothing "
+                          "was planned: give the true poses with --poses, or build the prediction anyway with "
+                          "--accept-prediction", worst[0])
 
     def _check_given_targets(self, assembly: Assembly) -> None:
         """Given targets put no part under the floor and no two parts into each other (:class:`BadTarget`)."""
@@ -473,8 +482,8 @@ class Pipeline:
             agreement = None
             if self.agreement is not None:
                 agreement = (self.agreement.overlay(self.image),
-                             f"silhouette IoU {self.agreement.silhouette_iou:.2f} with the picture: green both, red "
-                             "prediction only, blue picture only")
+                             f"silhouette IoU {self.agreement.silhouette_iou:.2f}, edge F1 "
+                             f"{self.agreement.edge_f1:.2f}: green both, red prediction only, blue picture only")
             picture = overview_image(self.image, self.target, final, seed=self.args.seed, target_caption=caption,
                                      result_caption=result, agreement=agreement)
             Image.fromarray(picture).save(folder / "overview.png")

@@ -33,6 +33,8 @@ MAX_OBJECT_FRACTION = 0.9  # nor one whose "object" covers almost all of it (a u
 SCALE_RANGE = (0.75, 1.33)  # how much the fit may scale the drawn silhouette (the object's distance, +-25-33%)
 NEAR_PLANE_M = 0.01  # triangles with a vertex nearer the camera than this are not drawn
 MAX_PIXEL_NOISE = 30.0  # a picture whose neighbouring pixels differ more than this (median) is noise, no object
+EDGE_CONTRAST = 24  # a colour step over this (RGB, 0-255) between neighbouring pixels is an edge in the picture
+EDGE_TOLERANCE_PX = 2  # an edge drawn this close to one in the picture (and back) agrees with it
 BORDER_PX = 3  # the picture's left and right strips this wide show the backdrop
 BACKDROP_SPREAD = 6.0  # a plain backdrop's border pixels lie this close (median, RGB 0-255) to their row's colour
 BACKDROP_DISTANCE = 24.0  # ... 90% of them within this; and a pixel this close to its row's colour is backdrop
@@ -89,14 +91,74 @@ def holds_an_object(mask: np.ndarray) -> bool:
     return MIN_OBJECT_FRACTION <= object_fraction(mask) <= MAX_OBJECT_FRACTION
 
 
-def projected_triangles(mesh: trimesh.Trimesh, camera_from_part: Pose, intrinsics: np.ndarray) -> np.ndarray:
-    """(T, 3, 2) pixel coordinates (u, v) of the mesh's triangles in front of the camera."""
+def projected_triangles(mesh: trimesh.Trimesh, camera_from_part: Pose,
+                        intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 3, 2) pixel coordinates (u, v) of the mesh's triangles in front of the camera, and (T,) their mean depth
+    (metres, camera frame)."""
     camera = camera_from_part.apply(np.asarray(mesh.vertices, dtype=np.float64))
     triangles = camera[np.asarray(mesh.faces)]
     in_front = np.all(triangles[:, :, 2] > NEAR_PLANE_M, axis=1)
     triangles = triangles[in_front]
     uvw = triangles @ intrinsics.T
-    return uvw[:, :, :2] / uvw[:, :, 2:3]
+    return uvw[:, :, :2] / uvw[:, :, 2:3], triangles[:, :, 2].mean(axis=1)
+
+
+def draw_labels(per_part: Sequence[tuple[np.ndarray, np.ndarray]], size_px: int, centre_px: np.ndarray,
+                scale: float, shift_px: np.ndarray) -> np.ndarray:
+    """(size, size) uint8: 0 background, k + 1 where part k is the nearest, by drawing every triangle far to near
+    (the painter's order by mean depth: exact for the separate boxes and boards furniture is made of, close
+    enough elsewhere for an edge check), placed as :func:`draw_silhouette` places them."""
+    image = Image.new("L", (size_px, size_px), 0)
+    draw = ImageDraw.Draw(image)
+    triangles = [(depth, k, triangle) for k, (tris, depths) in enumerate(per_part)
+                 for triangle, depth in zip(tris, depths)]
+    for _, k, triangle in sorted(triangles, key=lambda item: -item[0]):
+        points = centre_px + scale * (triangle - centre_px) + shift_px
+        draw.polygon([tuple(p) for p in points], fill=k + 1, outline=k + 1)
+    return np.asarray(image)
+
+
+def picture_edges(image: np.ndarray) -> np.ndarray:
+    """(H, W) bool: where the picture's colour changes sharply (the largest RGB difference to the right or below
+    neighbour over :data:`EDGE_CONTRAST`, 0-255)."""
+    rgb = np.asarray(image, dtype=np.int16)
+    right = np.abs(np.diff(rgb, axis=1)).max(axis=2)
+    down = np.abs(np.diff(rgb, axis=0)).max(axis=2)
+    edges = np.zeros(rgb.shape[:2], dtype=bool)
+    edges[:, :-1] |= right > EDGE_CONTRAST
+    edges[:-1, :] |= down > EDGE_CONTRAST
+    return edges
+
+
+def label_edges(labels: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels whose right or lower neighbour shows another part, between two parts (not the
+    silhouette's outline, which the silhouette IoU judges)."""
+    edges = np.zeros(labels.shape, dtype=bool)
+    right = (labels[:, :-1] != labels[:, 1:]) & (labels[:, :-1] > 0) & (labels[:, 1:] > 0)
+    down = (labels[:-1, :] != labels[1:, :]) & (labels[:-1, :] > 0) & (labels[1:, :] > 0)
+    edges[:, :-1] |= right
+    edges[:-1, :] |= down
+    return edges
+
+
+def edge_agreement(predicted_edges: np.ndarray, image_edges: np.ndarray, object_px: np.ndarray) -> float:
+    """F1 of the predicted edges between parts and the picture's edges inside the object (each within
+    :data:`EDGE_TOLERANCE_PX` of the other): low where the parts inside the outline sit elsewhere than the
+    picture shows them (a cabinet's shelf at the wrong height)."""
+    from scipy.ndimage import binary_dilation, binary_erosion
+
+    inside = binary_erosion(object_px, iterations=EDGE_TOLERANCE_PX + 1)
+    seen = image_edges & inside
+    drawn = predicted_edges & inside
+    if not seen.any() and not drawn.any():
+        return 1.0
+    if not seen.any() or not drawn.any():
+        return 0.0
+    near_seen = binary_dilation(seen, iterations=EDGE_TOLERANCE_PX)
+    near_drawn = binary_dilation(drawn, iterations=EDGE_TOLERANCE_PX)
+    precision = np.count_nonzero(drawn & near_seen) / np.count_nonzero(drawn)
+    recall = np.count_nonzero(seen & near_drawn) / np.count_nonzero(seen)
+    return float(2 * precision * recall / (precision + recall)) if precision + recall else 0.0
 
 
 def draw_silhouette(triangles_px: np.ndarray, size_px: int, centre_px: np.ndarray | None = None,
@@ -169,6 +231,7 @@ class PictureAgreement:
     object_fraction: float
     object_px: np.ndarray | None = None  # (H, W) bool: the object in the picture
     drawn_px: np.ndarray | None = None  # (H, W) bool: the assembly drawn and fitted
+    edge_f1: float | None = None  # edges between parts against the picture's (edge_agreement), given the picture
 
     def overlay(self, image: np.ndarray) -> np.ndarray:
         """(H, W, 3) uint8: the picture dimmed, with the drawn assembly's pixels off the object in red, the object's
@@ -190,17 +253,21 @@ class PictureAgreement:
         return {"silhouette_iou": round(self.silhouette_iou, 4),
                 "on_object": {str(k): round(v, 4) for k, v in self.on_object.items()},
                 "fit_scale": round(self.scale, 4), "fit_shift_px": [round(v, 2) for v in self.shift_px],
-                "object_fraction": round(self.object_fraction, 4)}
+                "object_fraction": round(self.object_fraction, 4),
+                "edge_f1": None if self.edge_f1 is None else round(self.edge_f1, 4)}
 
 
 def picture_agreement(mask: np.ndarray, names: Sequence, meshes: Sequence[trimesh.Trimesh],
-                      camera_from_parts: Sequence[Pose], intrinsics: np.ndarray | None = None) -> PictureAgreement:
+                      camera_from_parts: Sequence[Pose], intrinsics: np.ndarray | None = None,
+                      image: np.ndarray | None = None) -> PictureAgreement:
     """Compare the parts (``meshes`` in their own frames, metres, at ``camera_from_parts``) drawn with
-    ``intrinsics`` (default :func:`picture_intrinsics` of the mask's size) with the object ``mask`` (H, W) bool."""
+    ``intrinsics`` (default :func:`picture_intrinsics` of the mask's size) with the object ``mask`` (H, W) bool;
+    with the picture ``image`` (H, W, 3) also the edges between parts (:func:`edge_agreement`)."""
     mask = np.asarray(mask, dtype=bool)
     size = mask.shape[0]
     intrinsics = picture_intrinsics(size) if intrinsics is None else intrinsics
-    per_part = [projected_triangles(m, pose, intrinsics) for m, pose in zip(meshes, camera_from_parts)]
+    projected = [projected_triangles(m, pose, intrinsics) for m, pose in zip(meshes, camera_from_parts)]
+    per_part = [triangles for triangles, _ in projected]
     everything = np.concatenate([t for t in per_part if len(t)] or [np.zeros((0, 3, 2))])
     scale, shift, centre = fit_silhouette(everything, mask)
     drawn = draw_silhouette(everything, size, centre, scale, shift)
@@ -209,10 +276,14 @@ def picture_agreement(mask: np.ndarray, names: Sequence, meshes: Sequence[trimes
         part = draw_silhouette(triangles, size, centre, scale, shift)
         pixels = np.count_nonzero(part)
         on_object[name] = float(np.count_nonzero(part & mask) / pixels) if pixels else 0.0
+    edges = None
+    if image is not None:
+        labels = draw_labels(projected, size, centre, scale, shift)
+        edges = edge_agreement(label_edges(labels), picture_edges(image), mask)
     return PictureAgreement(iou(drawn, mask), on_object, scale, (float(shift[0]), float(shift[1])),
-                            object_fraction(mask), mask, drawn)
+                            object_fraction(mask), mask, drawn, edges)
 
 
-__all__ = ["MAX_PIXEL_NOISE", "PictureAgreement", "draw_silhouette", "fit_silhouette", "holds_an_object", "iou",
-           "object_mask", "picture_agreement", "picture_intrinsics", "pixel_noise", "plain_background",
-           "projected_triangles"]
+__all__ = ["MAX_PIXEL_NOISE", "PictureAgreement", "draw_labels", "draw_silhouette", "edge_agreement",
+           "fit_silhouette", "holds_an_object", "iou", "label_edges", "object_mask", "picture_agreement",
+           "picture_edges", "picture_intrinsics", "pixel_noise", "plain_background", "projected_triangles"]

@@ -223,14 +223,15 @@ def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: 
     mask, _ = object_mask(view.rgb, foreground)
     if mask.any():
         names = [p.name for p in convex]
-        repaired_view = picture_agreement(mask, names, parts.meshes, camera_from_repaired)
+        repaired_view = picture_agreement(mask, names, parts.meshes, camera_from_repaired, image=view.rgb)
         truth_view = picture_agreement(mask, names, parts.meshes,
-                                       [view.camera_from_assembly @ p for p in truth_poses])
+                                       [view.camera_from_assembly @ p for p in truth_poses], image=view.rgb)
         outcome.agreement = {"repaired_iou": repaired_view.silhouette_iou,
                              "repaired_min_on_object": min(repaired_view.on_object.values()),
                              "truth_iou": truth_view.silhouette_iou,
                              "truth_min_on_object": min(truth_view.on_object.values()),
-                             "object_fraction": repaired_view.object_fraction}
+                             "object_fraction": repaired_view.object_fraction,
+                             "repaired_edge_f1": repaired_view.edge_f1, "truth_edge_f1": truth_view.edge_f1}
     for key, poses in (("truth", truth_poses), ("predicted", placement.assembly_from_part), ("repaired", repaired)):
         contacts = contact_graph(convex, poses)
         fraction, whole = connectivity(contacts)
