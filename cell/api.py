@@ -40,8 +40,8 @@ UNITS = ("m", "cm", "mm")
 BAG_STORAGES = ("mcap", "sqlite3")  # rosbag2 storage of the exported bag (cell.ros2_export)
 PERCEPTION_HINT = ("note: the targets came from the picture, and the bundled model often misplaces parts (Part "
                    "Accuracy per category in benchmarks/RESULTS.md); the run plans only a predicted assembly whose "
-                   "silhouette matches the picture's (report.json: picture_agreement), and overview.png shows both; "
-                   "give known poses with --poses ASSEMBLY_JSON to check the cell alone")
+                   "outline and edges between parts match the picture's (report.json: picture_agreement), and "
+                   "overview.png shows both; give known poses with --poses ASSEMBLY_JSON to check the cell alone")
 
 
 @dataclass(frozen=True)
