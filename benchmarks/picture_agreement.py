@@ -6,12 +6,12 @@ Test sets: ``--count`` fresh level-3 procedural objects per category, drawn as `
 424242`` draws them (never used for training), written once under ``OUT/sets/``; optionally the real assemblies of
 ``--furniture``. Each object is rendered once (:mod:`perception.evaluate_assemblies`, parts in a random order),
 predicted with the bundled weights and repaired as ``cell.run`` repairs it; then the repaired assembly and the true
-one are drawn against the object in the picture (:mod:`perception.agreement`: the silhouette IoU and the F1 of the
-edges between parts). An object is *right* when every part passes Part Accuracy after repair. Prints, per set and
-pair of thresholds (the silhouette's with the edges' in use, then the edges' with the silhouette's): how many of the
-predictions pass the verdict, how many of those are right (the wrong ones that pass are what the verdict must
-avoid), how many right predictions it refuses, and how many true assemblies (drawn with the true camera) pass: a
-threshold must let nearly all of those through.
+one are drawn against the object in the picture (:mod:`perception.agreement`: the silhouette IoU and the share of
+the picture's edges inside the object that the drawing explains). An object is *right* when every part passes Part
+Accuracy after repair. Prints, per set and pair of thresholds (the silhouette's with the edges' in use, then the
+edges' with the silhouette's): how many of the predictions pass the verdict, how many of those are right (the wrong
+ones that pass are what the verdict must avoid), how many right predictions it refuses, and how many true assemblies
+(drawn with the true camera) pass: a threshold must let nearly all of those through.
 Writes every figure to ``OUT/agreement.json``.
 """
 
@@ -29,12 +29,12 @@ import numpy as np
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from cell.pipeline import MIN_EDGE_F1, MIN_SILHOUETTE_IOU  # noqa: E402
+from cell.pipeline import MIN_EDGE_RECALL, MIN_SILHOUETTE_IOU  # noqa: E402
 from perception.evaluate_assemblies import evaluate_assemblies  # noqa: E402
 from perception.weights import load_for_inference  # noqa: E402
 
 IOU_THRESHOLDS = (0.0, 0.6, 0.7, 0.8, 0.85, 0.9)
-EDGE_THRESHOLDS = (0.0, 0.3, 0.4, 0.5)
+EDGE_THRESHOLDS = (0.0, 0.7, 0.8, 0.85, 0.9)
 CATEGORIES = ("chair", "table", "cabinet")
 
 
@@ -62,24 +62,24 @@ def rows_of(figures: dict) -> list[dict]:
 
 
 def _passes(r: dict, who: str, min_iou: float, min_edge: float) -> bool:
-    return r[f"{who}_iou"] >= min_iou and (r[f"{who}_edge_f1"] or 0.0) >= min_edge
+    return r[f"{who}_iou"] >= min_iou and (r[f"{who}_edge_recall"] or 0.0) >= min_edge
 
 
 def table(name: str, rows: list[dict]) -> list[str]:
     right = sum(r["right"] for r in rows)
     lines = [f"\n{name}: {len(rows)} objects, {right} right (every part passes PA after repair); median silhouette "
              f"IoU truth {np.median([r['truth_iou'] for r in rows]):.3f}, prediction "
-             f"{np.median([r['repaired_iou'] for r in rows]):.3f}; median edge F1 truth "
-             f"{np.median([r['truth_edge_f1'] for r in rows]):.3f}, prediction "
-             f"{np.median([r['repaired_edge_f1'] for r in rows]):.3f}\n",
-             "| silhouette IoU at least | edge F1 at least | predictions passing | of them right | wrong passing | "
-             "right refused | truth passing |", "|---|---|---|---|---|---|---|"]
-    grid = [(t, MIN_EDGE_F1) for t in IOU_THRESHOLDS] + [(MIN_SILHOUETTE_IOU, e) for e in EDGE_THRESHOLDS
-                                                         if e != MIN_EDGE_F1]
+             f"{np.median([r['repaired_iou'] for r in rows]):.3f}; median edges explained truth "
+             f"{np.median([r['truth_edge_recall'] for r in rows]):.3f}, prediction "
+             f"{np.median([r['repaired_edge_recall'] for r in rows]):.3f}\n",
+             "| silhouette IoU at least | edges explained at least | predictions passing | of them right | "
+             "wrong passing | right refused | truth passing |", "|---|---|---|---|---|---|---|"]
+    grid = [(t, MIN_EDGE_RECALL) for t in IOU_THRESHOLDS] + [(MIN_SILHOUETTE_IOU, e) for e in EDGE_THRESHOLDS
+                                                         if e != MIN_EDGE_RECALL]
     for min_iou, min_edge in grid:
         passing = [r for r in rows if _passes(r, "repaired", min_iou, min_edge)]
         good = sum(r["right"] for r in passing)
-        used = abs(min_iou - MIN_SILHOUETTE_IOU) < 1e-9 and abs(min_edge - MIN_EDGE_F1) < 1e-9
+        used = abs(min_iou - MIN_SILHOUETTE_IOU) < 1e-9 and abs(min_edge - MIN_EDGE_RECALL) < 1e-9
         truth = sum(_passes(r, "truth", min_iou, min_edge) for r in rows)
         lines.append(f"| {min_iou:.2f} | {min_edge:.2f}{' (used)' if used else ''} | {len(passing)} | {good} | "
                      f"{len(passing) - good} | {right - good} | {truth} of {len(rows)} |")

@@ -1,4 +1,4 @@
-"""Does a predicted assembly agree with the picture it came from? Silhouettes compared in the picture's pixels.
+"""Does a predicted assembly agree with the picture it came from? Outlines and edges compared in its pixels.
 
 The predicted (repaired) assembly is drawn with the picture's camera (the camera frame the prediction gives every
 part: OpenCV, x right, y down, z forward, metres; the pinhole of :func:`picture_intrinsics`) and compared with the
@@ -8,6 +8,9 @@ foreground: :func:`object_mask`):
 - ``silhouette_iou``: intersection over union of the two silhouettes, after the drawn one is scaled about its
   centre and shifted to fit the object's (:func:`fit_silhouette`): the network's estimate of the object's distance
   is off by 0.1-0.2 m, which changes its size in the picture, not its layout; only the layout is judged;
+- ``edge_recall``: the share of the picture's edges inside the object that the drawing explains with an edge of
+  its own between parts or between the sides of a part (:func:`edge_recall`): the outline alone does not show
+  where a cabinet's shelves are, its edges do;
 - per part, ``on_object``: the fraction of its drawn pixels that lie on the object (a leg floating beside the
   chair scores near 0).
 
@@ -34,6 +37,7 @@ SCALE_RANGE = (0.75, 1.33)  # how much the fit may scale the drawn silhouette (t
 NEAR_PLANE_M = 0.01  # triangles with a vertex nearer the camera than this are not drawn
 MAX_PIXEL_NOISE = 30.0  # a picture whose neighbouring pixels differ more than this (median) is noise, no object
 EDGE_CONTRAST = 24  # a colour step over this (RGB, 0-255) between neighbouring pixels is an edge in the picture
+SIDE_COMPONENT = 0.38  # a normal's component over this (cos 67.5 degrees) counts in the side it faces
 EDGE_TOLERANCE_PX = 2  # an edge drawn this close to one in the picture (and back) agrees with it
 BORDER_PX = 3  # the picture's left and right strips this wide show the backdrop
 BACKDROP_SPREAD = 6.0  # a plain backdrop's border pixels lie this close (median, RGB 0-255) to their row's colour
@@ -92,29 +96,40 @@ def holds_an_object(mask: np.ndarray) -> bool:
 
 
 def projected_triangles(mesh: trimesh.Trimesh, camera_from_part: Pose,
-                        intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(T, 3, 2) pixel coordinates (u, v) of the mesh's triangles in front of the camera, and (T,) their mean depth
-    (metres, camera frame)."""
+                        intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh's triangles in front of the camera: (T, 3, 2) pixel coordinates (u, v), (T,) mean depth (metres,
+    camera frame) and (T,) the side of the part each faces (:func:`facing_side`)."""
     camera = camera_from_part.apply(np.asarray(mesh.vertices, dtype=np.float64))
     triangles = camera[np.asarray(mesh.faces)]
     in_front = np.all(triangles[:, :, 2] > NEAR_PLANE_M, axis=1)
     triangles = triangles[in_front]
     uvw = triangles @ intrinsics.T
-    return uvw[:, :, :2] / uvw[:, :, 2:3], triangles[:, :, 2].mean(axis=1)
+    sides = facing_side(np.asarray(mesh.face_normals)[in_front])
+    return uvw[:, :, :2] / uvw[:, :, 2:3], triangles[:, :, 2].mean(axis=1), sides
 
 
-def draw_labels(per_part: Sequence[tuple[np.ndarray, np.ndarray]], size_px: int, centre_px: np.ndarray,
+def facing_side(normals: np.ndarray) -> np.ndarray:
+    """(T,) int in 0..26: each (T, 3) unit normal (part frame) snapped to the nearest of the 26 directions of a cube's
+    faces, edges and corners. Two faces of a board that meet at an edge face different sides, so the edge between
+    them is drawn, as the picture shows it by their shading; the facets of a round leg change side every 45
+    degrees or so."""
+    snapped = np.where(np.abs(normals) > SIDE_COMPONENT, np.sign(normals), 0.0).astype(np.int64) + 1
+    return snapped[:, 0] * 9 + snapped[:, 1] * 3 + snapped[:, 2]
+
+
+def draw_labels(per_part: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], size_px: int, centre_px: np.ndarray,
                 scale: float, shift_px: np.ndarray) -> np.ndarray:
-    """(size, size) uint8: 0 background, k + 1 where part k is the nearest, by drawing every triangle far to near
-    (the painter's order by mean depth: exact for the separate boxes and boards furniture is made of, close
-    enough elsewhere for an edge check), placed as :func:`draw_silhouette` places them."""
-    image = Image.new("L", (size_px, size_px), 0)
+    """(size, size) int32: 0 background, else ``27 k + side + 1`` where side ``side`` of part k is the nearest
+    surface (:func:`projected_triangles`), by drawing every triangle far to near (the painter's order by mean depth:
+    exact for the separate boxes and boards furniture is made of, close enough elsewhere for an edge check),
+    placed as :func:`draw_silhouette` places them."""
+    image = Image.new("I", (size_px, size_px), 0)
     draw = ImageDraw.Draw(image)
-    triangles = [(depth, k, triangle) for k, (tris, depths) in enumerate(per_part)
-                 for triangle, depth in zip(tris, depths)]
-    for _, k, triangle in sorted(triangles, key=lambda item: -item[0]):
+    triangles = [(depth, 27 * k + side + 1, triangle) for k, (tris, depths, sides) in enumerate(per_part)
+                 for triangle, depth, side in zip(tris, depths, sides)]
+    for _, label, triangle in sorted(triangles, key=lambda item: -item[0]):
         points = centre_px + scale * (triangle - centre_px) + shift_px
-        draw.polygon([tuple(p) for p in points], fill=k + 1, outline=k + 1)
+        draw.polygon([tuple(p) for p in points], fill=int(label), outline=int(label))
     return np.asarray(image)
 
 
@@ -131,8 +146,8 @@ def picture_edges(image: np.ndarray) -> np.ndarray:
 
 
 def label_edges(labels: np.ndarray) -> np.ndarray:
-    """(H, W) bool: pixels whose right or lower neighbour shows another part, between two parts (not the
-    silhouette's outline, which the silhouette IoU judges)."""
+    """(H, W) bool: pixels whose right or lower neighbour shows another part or another side of the same part, inside
+    the drawn object (not its outline, which the silhouette IoU judges)."""
     edges = np.zeros(labels.shape, dtype=bool)
     right = (labels[:, :-1] != labels[:, 1:]) & (labels[:, :-1] > 0) & (labels[:, 1:] > 0)
     down = (labels[:-1, :] != labels[1:, :]) & (labels[:-1, :] > 0) & (labels[1:, :] > 0)
@@ -141,24 +156,20 @@ def label_edges(labels: np.ndarray) -> np.ndarray:
     return edges
 
 
-def edge_agreement(predicted_edges: np.ndarray, image_edges: np.ndarray, object_px: np.ndarray) -> float:
-    """F1 of the predicted edges between parts and the picture's edges inside the object (each within
-    :data:`EDGE_TOLERANCE_PX` of the other): low where the parts inside the outline sit elsewhere than the
-    picture shows them (a cabinet's shelf at the wrong height)."""
+def edge_recall(predicted_edges: np.ndarray, image_edges: np.ndarray, object_px: np.ndarray) -> float:
+    """The share of the picture's edges inside the object (colour steps, :func:`picture_edges`) that lie within
+    :data:`EDGE_TOLERANCE_PX` of an edge the prediction draws there (between parts, or between the sides of a part,
+    :func:`label_edges`): near 1 for the true assembly, whose drawing explains every edge the picture shows, and low
+    where the parts inside the outline sit elsewhere than the picture shows them (a cabinet's shelf at the wrong
+    height). The converse share is not used: the picture hides many drawn edges (two sides in the same light)."""
     from scipy.ndimage import binary_dilation, binary_erosion
 
     inside = binary_erosion(object_px, iterations=EDGE_TOLERANCE_PX + 1)
     seen = image_edges & inside
-    drawn = predicted_edges & inside
-    if not seen.any() and not drawn.any():
+    if not seen.any():
         return 1.0
-    if not seen.any() or not drawn.any():
-        return 0.0
-    near_seen = binary_dilation(seen, iterations=EDGE_TOLERANCE_PX)
-    near_drawn = binary_dilation(drawn, iterations=EDGE_TOLERANCE_PX)
-    precision = np.count_nonzero(drawn & near_seen) / np.count_nonzero(drawn)
-    recall = np.count_nonzero(seen & near_drawn) / np.count_nonzero(seen)
-    return float(2 * precision * recall / (precision + recall)) if precision + recall else 0.0
+    near_drawn = binary_dilation(predicted_edges & inside, iterations=EDGE_TOLERANCE_PX)
+    return float(np.count_nonzero(seen & near_drawn) / np.count_nonzero(seen))
 
 
 def draw_silhouette(triangles_px: np.ndarray, size_px: int, centre_px: np.ndarray | None = None,
@@ -231,7 +242,7 @@ class PictureAgreement:
     object_fraction: float
     object_px: np.ndarray | None = None  # (H, W) bool: the object in the picture
     drawn_px: np.ndarray | None = None  # (H, W) bool: the assembly drawn and fitted
-    edge_f1: float | None = None  # edges between parts against the picture's (edge_agreement), given the picture
+    edge_recall: float | None = None  # the picture's edges the drawing explains (edge_recall), given the picture
 
     def overlay(self, image: np.ndarray) -> np.ndarray:
         """(H, W, 3) uint8: the picture dimmed, with the drawn assembly's pixels off the object in red, the object's
@@ -254,7 +265,7 @@ class PictureAgreement:
                 "on_object": {str(k): round(v, 4) for k, v in self.on_object.items()},
                 "fit_scale": round(self.scale, 4), "fit_shift_px": [round(v, 2) for v in self.shift_px],
                 "object_fraction": round(self.object_fraction, 4),
-                "edge_f1": None if self.edge_f1 is None else round(self.edge_f1, 4)}
+                "edge_recall": None if self.edge_recall is None else round(self.edge_recall, 4)}
 
 
 def picture_agreement(mask: np.ndarray, names: Sequence, meshes: Sequence[trimesh.Trimesh],
@@ -262,12 +273,12 @@ def picture_agreement(mask: np.ndarray, names: Sequence, meshes: Sequence[trimes
                       image: np.ndarray | None = None) -> PictureAgreement:
     """Compare the parts (``meshes`` in their own frames, metres, at ``camera_from_parts``) drawn with
     ``intrinsics`` (default :func:`picture_intrinsics` of the mask's size) with the object ``mask`` (H, W) bool;
-    with the picture ``image`` (H, W, 3) also the edges between parts (:func:`edge_agreement`)."""
+    with the picture ``image`` (H, W, 3) also the picture's edges it explains (:func:`edge_recall`)."""
     mask = np.asarray(mask, dtype=bool)
     size = mask.shape[0]
     intrinsics = picture_intrinsics(size) if intrinsics is None else intrinsics
     projected = [projected_triangles(m, pose, intrinsics) for m, pose in zip(meshes, camera_from_parts)]
-    per_part = [triangles for triangles, _ in projected]
+    per_part = [triangles for triangles, _, _ in projected]
     everything = np.concatenate([t for t in per_part if len(t)] or [np.zeros((0, 3, 2))])
     scale, shift, centre = fit_silhouette(everything, mask)
     drawn = draw_silhouette(everything, size, centre, scale, shift)
@@ -279,11 +290,11 @@ def picture_agreement(mask: np.ndarray, names: Sequence, meshes: Sequence[trimes
     edges = None
     if image is not None:
         labels = draw_labels(projected, size, centre, scale, shift)
-        edges = edge_agreement(label_edges(labels), picture_edges(image), mask)
+        edges = edge_recall(label_edges(labels), picture_edges(image), mask)
     return PictureAgreement(iou(drawn, mask), on_object, scale, (float(shift[0]), float(shift[1])),
                             object_fraction(mask), mask, drawn, edges)
 
 
-__all__ = ["MAX_PIXEL_NOISE", "PictureAgreement", "draw_labels", "draw_silhouette", "edge_agreement",
+__all__ = ["MAX_PIXEL_NOISE", "PictureAgreement", "draw_labels", "draw_silhouette", "edge_recall", "facing_side",
            "fit_silhouette", "holds_an_object", "iou", "label_edges", "object_mask", "picture_agreement",
            "picture_edges", "picture_intrinsics", "pixel_noise", "plain_background", "projected_triangles"]

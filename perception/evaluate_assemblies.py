@@ -231,7 +231,8 @@ def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: 
                              "truth_iou": truth_view.silhouette_iou,
                              "truth_min_on_object": min(truth_view.on_object.values()),
                              "object_fraction": repaired_view.object_fraction,
-                             "repaired_edge_f1": repaired_view.edge_f1, "truth_edge_f1": truth_view.edge_f1}
+                             "repaired_edge_recall": repaired_view.edge_recall,
+                             "truth_edge_recall": truth_view.edge_recall}
     for key, poses in (("truth", truth_poses), ("predicted", placement.assembly_from_part), ("repaired", repaired)):
         contacts = contact_graph(convex, poses)
         fraction, whole = connectivity(contacts)

@@ -424,8 +424,8 @@ def test_full_run_from_the_picture(small_chair, tiny_checkpoint, tmp_path, capsy
     report = json.loads((out / "report.json").read_text())
     agreement = report["picture_agreement"]
     assert 0.0 <= agreement["silhouette_iou"] <= 1.0 and agreement["min_silhouette_iou"] == 0.8
-    assert agreement["accepted_anyway"] == (not agreement["agrees"]) and agreement["min_edge_f1"] == 0.4
-    assert agreement["agrees"] == (agreement["silhouette_iou"] >= 0.8 and agreement["edge_f1"] >= 0.4)
+    assert agreement["accepted_anyway"] == (not agreement["agrees"]) and agreement["min_edge_recall"] == 0.85
+    assert agreement["agrees"] == (agreement["silhouette_iou"] >= 0.8 and agreement["edge_recall"] >= 0.85)
     assert report["exit_code"] == code and report["built"] == (code == 0)
     assert report["success"] == (code == 0 and agreement["agrees"])
     assert report["perception"]["model"] == "ours"
