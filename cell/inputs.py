@@ -6,13 +6,14 @@ where there is one, the fix.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from planning.assembly import ASSEMBLY_FILE, MAX_PARTS, UNIT_TO_METRES, AssemblyError, load_mesh, read_poses
+from planning.assembly import ASSEMBLY_FILE, MAX_PARTS, UNIT_TO_METRES, AssemblyError, load_mesh, read_poses, solid_mesh
+from planning.mesh_intake import DEFAULT_SHEET_THICKNESS_M
 from planning.pose import Pose
 
 MESH_SUFFIXES = (".obj", ".stl", ".ply", ".off", ".glb", ".gltf")
@@ -31,12 +32,14 @@ class InputError(ValueError):
 @dataclass(frozen=True)
 class Parts:
     names: list[str]  # file stems, sorted
-    meshes: list[trimesh.Trimesh]  # own frames, metres
+    meshes: list[trimesh.Trimesh]  # own frames, metres: each part's solid (planning.mesh_intake)
     files: list[Path]
+    mesh_intake: dict[str, dict] = field(default_factory=dict)  # part name: what the intake did to its mesh
 
 
-def load_parts(folder: str | Path, units: str = "m") -> Parts:
-    """Every mesh file of ``folder`` (one part each, named after the file), in metres."""
+def load_parts(folder: str | Path, units: str = "m", sheet_thickness_m: float = DEFAULT_SHEET_THICKNESS_M) -> Parts:
+    """Every mesh file of ``folder`` (one part each, named after the file), in metres, each turned into the part's
+    solid by :mod:`planning.mesh_intake` (one-surface boards ``sheet_thickness_m`` thick, behind the drawn face)."""
     folder = Path(folder)
     if not folder.exists():
         raise InputError(f"{folder}: parts folder does not exist")
@@ -56,12 +59,14 @@ def load_parts(folder: str | Path, units: str = "m") -> Parts:
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates:
         raise InputError(f"{folder}: several files for part {duplicates[0]!r} (one mesh file per part name)")
-    meshes = []
+    meshes, intake = [], {}
     for name, path in zip(names, files):
         try:
-            meshes.append(load_mesh(path, f"part {name!r}", UNIT_TO_METRES[units]))
+            mesh, intake[name] = solid_mesh(load_mesh(path, f"part {name!r}", UNIT_TO_METRES[units]),
+                                            f"part {name!r} ({path})", sheet_thickness_m)
         except AssemblyError as exc:
             raise InputError(str(exc)) from exc
+        meshes.append(mesh)
     largest = max(float(np.max(m.extents)) for m in meshes)
     if largest > LARGEST_PLAUSIBLE_PART_M:
         worst = names[int(np.argmax([np.max(m.extents) for m in meshes]))]
@@ -70,7 +75,7 @@ def load_parts(folder: str | Path, units: str = "m") -> Parts:
                 else "check the units of the files")
         raise InputError(f"{folder}: part {worst!r} is {largest:g} {units} across, too large for furniture parts in "
                          f"{'metres' if units == 'm' else units}; {hint}")
-    return Parts(names, meshes, files)
+    return Parts(names, meshes, files, intake)
 
 
 def load_image(path: str | Path) -> np.ndarray:

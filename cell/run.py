@@ -48,6 +48,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--masses", type=Path, metavar="JSON",
                         help='known part masses in kg, as a JSON object {"part name": kg, ...}; parts it leaves out '
                         "weigh their volume at --density")
+    parser.add_argument("--sheet-thickness", type=float, default=3.0, metavar="MM",
+                        help="thickness given to a part drawn as one surface (a board without thickness), grown "
+                        "behind its drawn face (default 3 mm, a hardboard back panel)")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="seconds of kitting and motion planning per build (standing, then upside down) before "
                         "the planner stops trying other placements of the jig (default 300)")
@@ -61,6 +64,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     if args.density is not None and not MIN_DENSITY_KG_M3 <= args.density <= MAX_DENSITY_KG_M3:  # also refuses nan
         parser.error(f"--density {args.density:g}: give the parts' density in kg/m3, from {MIN_DENSITY_KG_M3:.0f} to "
                      f"{MAX_DENSITY_KG_M3:.0f} (wood is 600 kg/m3, 0.6 g/cm3)")
+    if not 0 < args.sheet_thickness <= 100:  # also refuses nan
+        parser.error(f"--sheet-thickness {args.sheet_thickness:g}: give the thickness of a one-surface board in mm, "
+                     "above 0 and at most 100 (hardboard is 3 mm)")
     if args.time_budget is not None and not args.time_budget > 0:  # also refuses nan
         parser.error(f"--time-budget {args.time_budget:g}: give a number of seconds above 0")
     return args
@@ -128,13 +134,17 @@ def _run(args: argparse.Namespace, console: Console) -> int:
     _check_out(out)
     try:
         scene = load_scene(args.scene)
-        parts = load_parts(args.parts, args.units)
+        parts = load_parts(args.parts, args.units, args.sheet_thickness / 1000.0)
         image = load_image(args.image) if args.image is not None else None
         given = load_poses(args.poses, parts.names) if args.poses is not None else None
         given_density = load_masses(args.masses, parts) if args.masses is not None else {}
     except (InputError, SceneError) as exc:
         raise BadInput(str(exc)) from exc
     console.say(f"{len(parts.names)} parts from {args.parts}" + (f", image {args.image}" if image is not None else ""))
+    from planning.mesh_intake import summary_line
+
+    if summary_line(parts.mesh_intake):
+        console.say(summary_line(parts.mesh_intake))
     if given_density:
         rest = len(parts.names) - len(given_density)
         console.say(f"masses of {len(given_density)} part(s) from {args.masses}"
@@ -148,6 +158,7 @@ def _run(args: argparse.Namespace, console: Console) -> int:
                                "masses": str(args.masses) if args.masses else None},
                     "stages": console.stage_seconds, "trajectory_duration_s": None,
                     "world_from_assembly": scene.fixture.world_from_assembly.to_dict(), "parts": []}
+    report["mesh_intake"] = {"sheet_thickness_m": args.sheet_thickness / 1000.0, "parts": parts.mesh_intake}
     from cell.pipeline import Pipeline, indented
 
     pipeline = Pipeline(scene, parts, image, given, args, console, report, given_density)

@@ -8,8 +8,9 @@ the same frame and unit (``process=False``: exactly the faces written here):
 - ``inside_out``: every face's winding reversed;
 - ``half_flipped``: a random half of the faces reversed;
 - ``holes``: 3% of the faces removed at random;
-- ``one_surface``: only the faces of one large side of a board (a board drawn as one surface; for parts whose
-  least extent is at most a fifth of their middle one; others come back unchanged, see :func:`is_board`);
+- ``one_surface``: only the faces of one large flat side of a board (a board drawn as one surface; for parts whose
+  least extent is at most a fifth of their middle one and whose side is flat; others come back unchanged, see
+  :func:`is_board`);
 - ``soup``: triangle soup: every face with its own three vertices, in random order, half of them reversed, 3%
   removed;
 - ``split``: cut in two open halves by a plane through the centre, 1 mm apart as two loose pieces, the second
@@ -35,12 +36,32 @@ def _flip(faces: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return out
 
 
-def is_board(mesh: trimesh.Trimesh) -> bool:
-    """Whether ``mesh`` is board-like: its least extent along its principal axes at most a fifth of the middle."""
+def _flat_side(mesh: trimesh.Trimesh, seed: int) -> np.ndarray | None:
+    """The faces of one large flat side of a board (normals within 30 degrees of its least principal axis, on the
+    side of that axis holding more area, picked at random on a tie of sizes; their vertices within 1 mm of a plane)
+    as a face mask, or None when ``mesh`` is no flat board (least extent more than a fifth of the middle one, or a
+    curved side)."""
     centred = np.asarray(mesh.vertices) - np.asarray(mesh.vertices).mean(axis=0)
     axes = np.linalg.svd(centred, full_matrices=False)[2]
     spread = np.ptp(centred @ axes.T, axis=0)
-    return bool(spread[2] <= 0.2 * spread[1])
+    if spread[2] > 0.2 * spread[1]:
+        return None
+    normal = axes[2] * (1 if np.random.default_rng(seed).random() < 0.5 else -1)
+    facing = mesh.face_normals @ normal
+    side = facing > np.cos(np.radians(30))
+    if mesh.area_faces[side].sum() < mesh.area_faces[facing < -np.cos(np.radians(30))].sum():
+        side = facing < -np.cos(np.radians(30))
+    if not side.any():
+        return None
+    corners = np.unique(np.asarray(mesh.faces)[side])
+    if np.ptp(centred[corners] @ axes[2]) > 0.001:
+        return None
+    return side
+
+
+def is_board(mesh: trimesh.Trimesh) -> bool:
+    """Whether ``mesh`` is a flat board that ``one_surface`` draws as one surface."""
+    return _flat_side(mesh, 0) is not None
 
 
 def double_sided(mesh: trimesh.Trimesh, seed: int) -> trimesh.Trimesh:
@@ -64,17 +85,10 @@ def holes(mesh: trimesh.Trimesh, seed: int) -> trimesh.Trimesh:
 
 
 def one_surface(mesh: trimesh.Trimesh, seed: int) -> trimesh.Trimesh:
-    """The faces of the board's larger side facing along its least principal axis (those whose normals lie within
-    30 degrees of it, on the side holding more area), or ``mesh`` unchanged when it is no board."""
-    if not is_board(mesh):
+    """The faces of one large flat side of a board, or ``mesh`` unchanged when it is no flat board."""
+    side = _flat_side(mesh, seed)
+    if side is None:
         return mesh
-    rng = np.random.default_rng(seed)
-    centred = np.asarray(mesh.vertices) - np.asarray(mesh.vertices).mean(axis=0)
-    normal = np.linalg.svd(centred, full_matrices=False)[2][2] * (1 if rng.random() < 0.5 else -1)
-    facing = mesh.face_normals @ normal
-    side = facing > np.cos(np.radians(30))
-    if mesh.area_faces[side].sum() < mesh.area_faces[facing < -np.cos(np.radians(30))].sum():
-        side = facing < -np.cos(np.radians(30))
     surface = _mesh(mesh.vertices, np.asarray(mesh.faces)[side])
     surface.remove_unreferenced_vertices()
     return surface
@@ -100,7 +114,9 @@ def split(mesh: trimesh.Trimesh, seed: int) -> trimesh.Trimesh:
     for sign in (1.0, -1.0):
         vertices, faces = trimesh.intersections.slice_faces_plane(mesh.vertices, mesh.faces, sign * normal,
                                                                   origin)[:2]
-        halves.append((np.asarray(vertices), np.asarray(faces)))
+        half = _mesh(vertices, faces)
+        half.merge_vertices(digits_vertex=7)  # the cut's new vertices, made per triangle, joined again (0.1 um)
+        halves.append((np.asarray(half.vertices), np.asarray(half.faces)))
     (v1, f1), (v2, f2) = halves
     return _mesh(np.concatenate([v1, v2 - 0.001 * normal]), np.concatenate([f1, f2[:, ::-1] + len(v1)]))
 

@@ -106,12 +106,16 @@ def is_solid(mesh: trimesh.Trimesh) -> bool:
         return False
     if len(group_rows(np.sort(faces, axis=1), require_count=1)) != len(faces):
         return False  # a face repeated (a double-sided mesh is closed and oriented, with no volume)
+    if _signed_volume(mesh) <= 0:
+        return False
     groups = _face_groups(mesh)
     if len(groups) == 1:
-        return _signed_volume(mesh) > 0
-    triangles = np.asarray(mesh.triangles)
+        return True
+    # every piece closed on its own encloses a volume (none inside-out); pieces joined to others through edges
+    # of three or more faces are closed only together, and counted in the whole
     with np.errstate(all="ignore"):
-        return all(trimesh.triangles.mass_properties(triangles[g], skip_inertia=True).volume > 0 for g in groups)
+        return all(trimesh.triangles.mass_properties(np.asarray(mesh.triangles)[g], skip_inertia=True).volume > 0
+                   for g in groups if len(g) >= 4 and _is_closed_oriented(faces[g]))
 
 
 def _cleaned(mesh: trimesh.Trimesh, log: _Log) -> trimesh.Trimesh:
@@ -215,30 +219,50 @@ def _boundary_loops(faces: np.ndarray) -> list[list[int]]:
     return loops
 
 
+_MAX_LOOP_FOR_VERTEX_FANS = 64  # longer holes get the fan around their mean point only
+
+
+def _fan_volume(points: np.ndarray, fan: np.ndarray) -> float:
+    """Signed volume (about the origin) that the triangles ``fan`` (T, 3) of ``points`` add to a closed surface."""
+    a, b, c = points[fan[:, 0]], points[fan[:, 1]], points[fan[:, 2]]
+    return float(np.einsum("ij,ij->", a, np.cross(b, c))) / 6.0
+
+
+def _hole_fan(points: np.ndarray, ring: np.ndarray, centre_index: int) -> np.ndarray:
+    """The triangles (T, 3) closing the hole ``ring`` (loop of vertex indices into ``points``, along the faces'
+    edges; ``points[centre_index]`` its mean point): of the fans around the mean point and around each of the
+    loop's vertices, the one that encloses the most. A flat hole's fans all enclose the same; across a bent hole
+    (faces missing on both sides of a board's edge) the fan that bulges out restores the edge, where the fan around
+    the mean point would cut it off."""
+    following = np.roll(ring, -1)
+    fans = [np.column_stack([following, ring, np.full(len(ring), centre_index)])]
+    if len(ring) <= _MAX_LOOP_FOR_VERTEX_FANS:
+        for k in range(len(ring)):
+            turned = np.roll(ring, -k)  # fan around turned[0]: triangles (turned[i + 1], turned[i], turned[0])
+            fans.append(np.column_stack([turned[2:], turned[1:-1], np.full(len(ring) - 2, turned[0])]))
+    volumes = [_fan_volume(points, fan) for fan in fans]
+    best = int(np.argmax(np.round(volumes, 15)))  # ties (flat holes): the first, the fan around the mean point
+    return fans[best]
+
+
 def _holes_closed(piece: trimesh.Trimesh, log: _Log) -> trimesh.Trimesh:
-    """``piece`` with each hole (:func:`_boundary_loops`) closed by a fan of triangles around the hole's mean point.
-    Hand-written: ``trimesh.repair.fill_holes`` (5.2) takes the loops from a cycle basis of the boundary graph and
-    leaves parts of larger holes open. The fan's triangles, wound against the loop, make the surface closed and
-    oriented, and its volume integral exact for a flat hole whatever its shape (the fan's signed areas sum to the
-    hole's)."""
+    """``piece`` with each hole (:func:`_boundary_loops`) closed by a fan of triangles (:func:`_hole_fan`), wound
+    against the loop, so that the surface is closed and oriented; a flat hole's fan makes the volume integral
+    exact whatever the hole's shape (the fan's signed areas sum to the hole's). Hand-written:
+    ``trimesh.repair.fill_holes`` (5.2) takes the loops from a cycle basis of the boundary graph and leaves parts
+    of larger holes open."""
     faces = np.asarray(piece.faces)
     loops = _boundary_loops(faces)
     if not loops:
         return piece
-    vertices = [np.asarray(piece.vertices)]
-    new_faces = []
-    count = len(piece.vertices)
-    for loop in loops:
-        ring = np.array(loop)
-        if len(ring) == 3:
-            new_faces.append(ring[::-1][None])
-            continue
-        vertices.append(np.asarray(piece.vertices)[ring].mean(axis=0)[None])
-        new_faces.append(np.column_stack([np.roll(ring, -1), ring, np.full(len(ring), count)]))
-        count += 1
-    added = np.concatenate(new_faces)
+    rings = [np.array(loop) for loop in loops]
+    centres = np.array([np.asarray(piece.vertices)[ring].mean(axis=0) for ring in rings])
+    points = np.concatenate([np.asarray(piece.vertices), centres])
+    added = [_hole_fan(points, ring, len(piece.vertices) + k) for k, ring in enumerate(rings)]
     log.add("holes", len(loops))
-    return trimesh.Trimesh(np.concatenate(vertices), np.concatenate([faces, added]), process=False)
+    closed = trimesh.Trimesh(points, np.concatenate([faces, *added]), process=False)
+    closed.remove_unreferenced_vertices()  # the mean points of holes closed around a vertex of theirs
+    return closed
 
 
 def _reconstructed(piece: trimesh.Trimesh) -> tuple[trimesh.Trimesh, str]:
@@ -360,7 +384,8 @@ def _hull_volume(mesh: trimesh.Trimesh) -> float:
 def intake_mesh(mesh: trimesh.Trimesh, name: str, sheet_thickness: float = DEFAULT_SHEET_THICKNESS_M,
                 outward: np.ndarray | None = None, sheet_max_thickness: float = SHEET_MAX_THICKNESS_M,
                 ) -> MeshIntake:
-    """The solid of part ``name`` (see the module) and what was done. ``mesh``: the part's mesh in its own frame;
+    """The solid of a part (see the module) and what was done; ``name`` says which part in messages (such as
+    ``part 'leg_1'``). ``mesh``: the part's mesh in its own frame;
     ``sheet_thickness`` and ``sheet_max_thickness`` in the mesh's unit; ``outward``: (3,) a direction in the part
     frame pointing away from the assembly's centre (for the side a one-surface board grows to), or None.
     Raises :class:`MeshIntakeError` when no solid can be made."""
@@ -372,7 +397,7 @@ def intake_mesh(mesh: trimesh.Trimesh, name: str, sheet_thickness: float = DEFAU
     log = _Log()
     cleaned = _cleaned(mesh, log)
     if len(cleaned.faces) == 0:
-        raise MeshIntakeError(f"part {name!r}: every face of its mesh is without area (a line or a point), so it "
+        raise MeshIntakeError(f"{name}: every face of its mesh is without area (a line or a point), so it "
                               "has no volume to weigh or collide with; give the part as a solid")
     cleaned = _consistently_wound(cleaned, log)
     groups = _face_groups(cleaned)
@@ -388,13 +413,13 @@ def intake_mesh(mesh: trimesh.Trimesh, name: str, sheet_thickness: float = DEFAU
         if solid is not None:
             solids.append(solid)
     if not solids:
-        raise MeshIntakeError(f"part {name!r}: its mesh encloses no volume and no repair gives it one (all of it "
+        raise MeshIntakeError(f"{name}: its mesh encloses no volume and no repair gives it one (all of it "
                               "lies on a line); give the part as a solid")
     solid = solids[0] if len(solids) == 1 else trimesh.util.concatenate(solids)
     solid = trimesh.Trimesh(np.asarray(solid.vertices), np.asarray(solid.faces), process=False)
     volume_after = _signed_volume(solid)
     if not volume_after > 0:
-        raise MeshIntakeError(f"part {name!r}: no repair of its mesh encloses a volume ({'; '.join(log.words())}); "
+        raise MeshIntakeError(f"{name}: no repair of its mesh encloses a volume ({'; '.join(log.words())}); "
                               "give the part as a closed solid")
     return MeshIntake(solid, log.words() or ("rebuilt",), volume_before, volume_after, len(solids), len(mesh.faces))
 
