@@ -260,9 +260,24 @@ def _holes_closed(piece: trimesh.Trimesh, log: _Log) -> trimesh.Trimesh:
     points = np.concatenate([np.asarray(piece.vertices), centres])
     added = [_hole_fan(points, ring, len(piece.vertices) + k) for k, ring in enumerate(rings)]
     log.add("holes", len(loops))
-    closed = trimesh.Trimesh(points, np.concatenate([faces, *added]), process=False)
+    faces = _without_opposite_pairs(np.concatenate([faces, *added]))
+    closed = trimesh.Trimesh(points, faces, process=False)
     closed.remove_unreferenced_vertices()  # the mean points of holes closed around a vertex of theirs
     return closed
+
+
+def _without_opposite_pairs(faces: np.ndarray) -> np.ndarray:
+    """``faces`` less every pair of a face and its reverse (a fan laid back onto a face beside the hole): the pair
+    encloses nothing, and dropping both keeps a closed surface closed."""
+    _, first_index, group, counts = np.unique(np.sort(faces, axis=1), axis=0, return_index=True,
+                                              return_inverse=True, return_counts=True)
+    group = group.reshape(-1)
+    parity = ((faces[:, 0] > faces[:, 1]).astype(int) + (faces[:, 0] > faces[:, 2]) + (faces[:, 1] > faces[:, 2])) % 2
+    shared = counts[group] == 2
+    opposite = shared & (parity != parity[first_index[group]])  # the second of an opposite pair
+    drop = opposite.copy()
+    drop[first_index[group[opposite]]] = True
+    return faces[~drop]
 
 
 def _reconstructed(piece: trimesh.Trimesh) -> tuple[trimesh.Trimesh, str]:
