@@ -100,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     rows: dict[str, dict] = {d: {"errors": [], "boards": [], "seconds": [], "seq": [], "build": []}
                              for d in args.damages}
     intact_seq = []
+    outliers: list[str] = []
     with tempfile.TemporaryDirectory(prefix="mesh_intake_") as tmp:
         for folder in folders:
             intact = raw_assembly(folder)
@@ -115,10 +116,14 @@ def main(argv: list[str] | None = None) -> int:
                     result = intake_mesh(part.mesh, part.name, outward=outward[part.name])
                     row["seconds"].append(time.perf_counter() - start)
                     if damage == "one_surface" and is_board(original.mesh):
-                        expected = part.mesh.area * DEFAULT_SHEET_THICKNESS_M
-                        row["boards"].append(result.volume_after / expected - 1.0)
+                        error = result.volume_after / (part.mesh.area * DEFAULT_SHEET_THICKNESS_M) - 1.0
+                        row["boards"].append(error)
                     else:
-                        row["errors"].append(result.volume_after / volumes[part.name] - 1.0)
+                        error = result.volume_after / volumes[part.name] - 1.0
+                        row["errors"].append(error)
+                    if abs(error) > 0.05 or row["seconds"][-1] > 1.0:
+                        outliers.append(f"{folder.name}/{part.name} {damage}: volume {100 * error:+.1f}%, "
+                                        f"{row['seconds'][-1]:.1f} s ({'; '.join(result.fixes)})")
                 if args.sequence or args.build:
                     where = write_assembly(broken, Path(tmp) / f"{folder.name}_{damage}")
                     if args.sequence:
@@ -148,6 +153,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.build:
             line += f" {sum(row['build'])}/{len(row['build'])} |"
         print(line)
+    if outliers:
+        print(f"\n{len(outliers)} parts off by more than 5% or slower than 1 s:")
+        print("\n".join(f"- {line}" for line in outliers))
     if args.sequence:
         print(f"\nintact objects sequenced: {sum(ok for ok, _ in intact_seq)}/{len(intact_seq)}")
     return 0

@@ -118,6 +118,15 @@ def is_solid(mesh: trimesh.Trimesh) -> bool:
                    for g in groups if len(g) >= 4 and _is_closed_oriented(faces[g]))
 
 
+def _encloses(piece: trimesh.Trimesh) -> bool:
+    """Whether one connected piece, repaired, is a solid: closed and oriented, no face repeated, a positive
+    volume. (Unlike :func:`is_solid`, the faces it joins through edges of three or more faces are not asked to
+    enclose a volume each: the repair orients the piece as a whole.)"""
+    faces = np.asarray(piece.faces)
+    return (len(faces) >= 4 and _is_closed_oriented(faces) and _signed_volume(piece) > 0
+            and len(group_rows(np.sort(faces, axis=1), require_count=1)) == len(faces))
+
+
 def _cleaned(mesh: trimesh.Trimesh, log: _Log) -> trimesh.Trimesh:
     """Step 2 on a copy: vertices merged, faces without area and repeated faces dropped."""
     out = trimesh.Trimesh(np.array(mesh.vertices, dtype=np.float64), np.array(mesh.faces, dtype=np.int64),
@@ -192,13 +201,16 @@ def _extruded_sheet(piece: trimesh.Trimesh, thickness: float, outward: np.ndarra
 def _boundary_loops(faces: np.ndarray) -> list[list[int]]:
     """The holes of a consistently wound surface ``faces`` (F, 3): loops of vertex indices, each following the
     direction of the faces' edges along it (every directed edge met by its reverse fewer times than it occurs)."""
-    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    edges, counts = np.unique(directed, axis=0, return_counts=True)
-    reverse = {(int(a), int(b)): int(n) for (a, b), n in zip(edges, counts)}
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
+    size = int(directed.max()) + 1
+    keys, counts = np.unique(directed[:, 0] * size + directed[:, 1], return_counts=True)
+    reverse_keys = (keys % size) * size + keys // size
+    found = np.searchsorted(keys, reverse_keys).clip(0, len(keys) - 1)
+    reverse_counts = np.where(keys[found] == reverse_keys, counts[found], 0)
+    excess = counts - reverse_counts
     leaving: dict[int, list[int]] = {}
-    for (a, b), n in zip(edges.tolist(), counts.tolist()):
-        for _ in range(n - reverse.get((b, a), 0)):
-            leaving.setdefault(a, []).append(b)
+    for key, n in zip(keys[excess > 0].tolist(), excess[excess > 0].tolist()):
+        leaving.setdefault(key // size, []).extend([key % size] * n)
     loops = []
     while leaving:
         start = next(iter(leaving))
@@ -225,7 +237,9 @@ _MAX_LOOP_FOR_VERTEX_FANS = 64  # longer holes get the fan around their mean poi
 def _fan_volume(points: np.ndarray, fan: np.ndarray) -> float:
     """Signed volume (about the origin) that the triangles ``fan`` (T, 3) of ``points`` add to a closed surface."""
     a, b, c = points[fan[:, 0]], points[fan[:, 1]], points[fan[:, 2]]
-    return float(np.einsum("ij,ij->", a, np.cross(b, c))) / 6.0
+    cross = np.stack([b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1], b[:, 2] * c[:, 0] - b[:, 0] * c[:, 2],
+                      b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0]], axis=1)
+    return float(np.sum(a * cross)) / 6.0
 
 
 def _hole_fan(points: np.ndarray, ring: np.ndarray, centre_index: int) -> np.ndarray:
@@ -234,6 +248,8 @@ def _hole_fan(points: np.ndarray, ring: np.ndarray, centre_index: int) -> np.nda
     loop's vertices, the one that encloses the most. A flat hole's fans all enclose the same; across a bent hole
     (faces missing on both sides of a board's edge) the fan that bulges out restores the edge, where the fan around
     the mean point would cut it off."""
+    if len(ring) == 3:
+        return ring[::-1][None]
     following = np.roll(ring, -1)
     fans = [np.column_stack([following, ring, np.full(len(ring), centre_index)])]
     if len(ring) <= _MAX_LOOP_FOR_VERTEX_FANS:
@@ -378,7 +394,7 @@ def _solid_piece(piece: trimesh.Trimesh, settings: tuple[float, float], outward:
     if _is_closed_oriented(np.asarray(piece.faces)) and _signed_volume(piece) < 0:
         piece = trimesh.Trimesh(np.asarray(piece.vertices), np.asarray(piece.faces)[:, ::-1], process=False)
         log.add("inverted")
-    if is_solid(piece):
+    if _encloses(piece):
         return piece
     if _hull_volume(piece) <= 0:
         return None
