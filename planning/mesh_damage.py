@@ -37,26 +37,25 @@ def _flip(faces: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 
 def _flat_side(mesh: trimesh.Trimesh, seed: int) -> np.ndarray | None:
-    """The faces of one large flat side of a board (normals within 30 degrees of its least principal axis, on the
-    side of that axis holding more area, picked at random on a tie of sizes; their vertices within 1 mm of a plane)
-    as a face mask, or None when ``mesh`` is no flat board (least extent more than a fifth of the middle one, or a
-    curved side)."""
+    """The faces of one large flat side of a board as a face mask: those whose normals lie within 30 degrees of its
+    least principal axis, on one side, their vertices within 1 mm of a plane; of two such sides the larger, or
+    one picked at random (``seed``) where both are as large. None when ``mesh`` is no flat board (least extent
+    more than a fifth of the middle one, or no flat side)."""
     centred = np.asarray(mesh.vertices) - np.asarray(mesh.vertices).mean(axis=0)
     axes = np.linalg.svd(centred, full_matrices=False)[2]
     spread = np.ptp(centred @ axes.T, axis=0)
     if spread[2] > 0.2 * spread[1]:
         return None
-    normal = axes[2] * (1 if np.random.default_rng(seed).random() < 0.5 else -1)
-    facing = mesh.face_normals @ normal
-    side = facing > np.cos(np.radians(30))
-    if mesh.area_faces[side].sum() < mesh.area_faces[facing < -np.cos(np.radians(30))].sum():
-        side = facing < -np.cos(np.radians(30))
-    if not side.any():
+    facing = mesh.face_normals @ axes[2]
+    sides = [facing > np.cos(np.radians(30)), facing < -np.cos(np.radians(30))]
+    flat = [side for side in sides
+            if side.any() and np.ptp(centred[np.unique(np.asarray(mesh.faces)[side])] @ axes[2]) <= 0.001]
+    if not flat:
         return None
-    corners = np.unique(np.asarray(mesh.faces)[side])
-    if np.ptp(centred[corners] @ axes[2]) > 0.001:
-        return None
-    return side
+    areas = [float(mesh.area_faces[side].sum()) for side in flat]
+    if len(flat) == 2 and abs(areas[0] - areas[1]) <= 1e-9 * max(areas):
+        return flat[int(np.random.default_rng(seed).integers(2))]
+    return flat[int(np.argmax(areas))]
 
 
 def is_board(mesh: trimesh.Trimesh) -> bool:

@@ -90,9 +90,26 @@ def boundary_loops(faces: np.ndarray) -> list[list[int]]:
                 break
             loop.append(following)
             vertex = following
-        if len(loop) >= 3:
-            loops.append(loop)
+        loops.extend(simple for simple in _simple_loops(loop) if len(simple) >= 3)
     return loops
+
+
+def _simple_loops(loop: list[int]) -> list[list[int]]:
+    """``loop`` cut where it passes a vertex again (two holes meeting at a corner) into loops that do not, each
+    in the same direction: [0, 1, 3, 7, 4, 3] is [3, 7, 4] and [0, 1, 3]."""
+    out, stack, position = [], [], {}
+    for vertex in loop:
+        if vertex in position:
+            at = position[vertex]
+            out.append(stack[at:])
+            for dropped in stack[at + 1:]:
+                del position[dropped]
+            del stack[at + 1:]
+        else:
+            position[vertex] = len(stack)
+            stack.append(vertex)
+    out.append(stack)
+    return out
 
 
 _MAX_LOOP_FOR_VERTEX_FANS = 64  # longer holes get the fan around their mean point only
