@@ -123,29 +123,29 @@ def _fan_volume(points: np.ndarray, fan: np.ndarray) -> float:
     return float(np.sum(a * cross)) / 6.0
 
 
-def _hole_fan(points: np.ndarray, ring: np.ndarray, centre_index: int) -> np.ndarray:
-    """The triangles (T, 3) closing the hole ``ring`` (loop of vertex indices into ``points``, along the faces'
-    edges; ``points[centre_index]`` its mean point): of the fans around the mean point and around each of the
-    loop's vertices, the one that encloses the most. A flat hole's fans all enclose the same; across a bent hole
-    (faces missing on both sides of a board's edge) the fan that bulges out restores the edge, where the fan around
-    the mean point would cut it off."""
+def _hole_fans(points: np.ndarray, ring: np.ndarray, centre_index: int) -> list[np.ndarray]:
+    """The fans of triangles (T, 3) that close the hole ``ring`` (loop of vertex indices into ``points``, along
+    the faces' edges; ``points[centre_index]`` its mean point), each wound against the loop: around the mean point
+    first, then around each of the loop's vertices (loops of at most :data:`_MAX_LOOP_FOR_VERTEX_FANS`)."""
     if len(ring) == 3:
-        return ring[::-1][None]
+        return [ring[::-1][None]]
     following = np.roll(ring, -1)
     fans = [np.column_stack([following, ring, np.full(len(ring), centre_index)])]
     if len(ring) <= _MAX_LOOP_FOR_VERTEX_FANS:
         for k in range(len(ring)):
             turned = np.roll(ring, -k)  # fan around turned[0]: triangles (turned[i + 1], turned[i], turned[0])
             fans.append(np.column_stack([turned[2:], turned[1:-1], np.full(len(ring) - 2, turned[0])]))
-    volumes = [_fan_volume(points, fan) for fan in fans]
-    best = int(np.argmax(np.round(volumes, 15)))  # ties (flat holes): the first, the fan around the mean point
-    return fans[best]
+    return fans
 
 
 def holes_closed(piece: trimesh.Trimesh) -> tuple[trimesh.Trimesh, int]:
-    """``piece`` with each hole (:func:`boundary_loops`) closed by a fan of triangles (:func:`_hole_fan`), wound
-    against the loop, so that the surface is closed and oriented; a flat hole's fan makes the volume integral
-    exact whatever the hole's shape (the fan's signed areas sum to the hole's). Hand-written:
+    """``piece`` with each hole (:func:`boundary_loops`) closed by a fan of triangles wound against the loop, so
+    that the surface is closed and oriented; and how many holes there were. Of the fans around the hole's mean
+    point and around each of its vertices (:func:`_hole_fans`), the one that encloses the most in the piece's
+    sense (the sign of its volume closed by the fans around the mean points), laying no triangle onto a face it
+    has. A flat hole's fans all enclose the same (their signed areas sum to the hole's: the volume integral is
+    exact whatever the hole's shape); across a bent hole (faces missing on both sides of a board's edge) the fan
+    that bulges out restores the edge, where the fan around the mean point would cut it off. Hand-written:
     ``trimesh.repair.fill_holes`` (5.2) takes the loops from a cycle basis of the boundary graph and leaves parts
     of larger holes open."""
     faces = np.asarray(piece.faces)
@@ -155,7 +155,16 @@ def holes_closed(piece: trimesh.Trimesh) -> tuple[trimesh.Trimesh, int]:
     rings = [np.array(loop) for loop in loops]
     centres = np.array([np.asarray(piece.vertices)[ring].mean(axis=0) for ring in rings])
     points = np.concatenate([np.asarray(piece.vertices), centres])
-    added = [_hole_fan(points, ring, len(piece.vertices) + k) for k, ring in enumerate(rings)]
+    candidates = [_hole_fans(points, ring, len(piece.vertices) + k) for k, ring in enumerate(rings)]
+    volumes = [[_fan_volume(points, fan) for fan in fans] for fans in candidates]
+    sense = 1.0 if _fan_volume(points, faces) + sum(v[0] for v in volumes) >= 0 else -1.0
+    existing = {tuple(face) for face in np.sort(faces, axis=1).tolist()}
+    added = []
+    for fans, fan_volumes in zip(candidates, volumes):
+        usable = [k for k, fan in enumerate(fans)
+                  if k == 0 or not any(tuple(t) in existing for t in np.sort(fan, axis=1).tolist())]
+        # ties (flat holes): the first, the fan around the mean point
+        added.append(fans[max(usable, key=lambda k: (round(sense * fan_volumes[k], 15), -k))])
     faces = _without_opposite_pairs(np.concatenate([faces, *added]))
     closed = trimesh.Trimesh(points, faces, process=False)
     closed.remove_unreferenced_vertices()  # the mean points of holes closed around a vertex of theirs
