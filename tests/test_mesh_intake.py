@@ -221,3 +221,23 @@ def test_a_clean_real_object_reads_as_written():
         raw = load_mesh(FURNITURE / "bookcase_expedit_0373" / part.mesh_file, part.name)
         assert np.array_equal(part.mesh.vertices, raw.vertices) and np.array_equal(part.mesh.faces, raw.faces)
         assert assembly.mesh_intake[part.name]["changed"] is False
+
+
+def test_cell_run_says_what_the_intake_did(tmp_path, capsys):
+    """``python -m cell.run`` prints one line on the repaired meshes as it reads them (here before it refuses a
+    part under the floor: exit 2, nothing written)."""
+    from cell.run import main
+
+    parts = tmp_path / "parts"
+    parts.mkdir()
+    (parts / "back.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0.1 0.1 0\nv 0 0.1 0\nf 1 2 3\nf 1 3 4\n")
+    BOARD.export(parts / "top.obj")
+    poses = {"parts": [{"name": name, "mesh": f"parts/{name}.obj",
+                        "pose": {"position": [0.0, 0.0, z], "quat_wxyz": [1.0, 0.0, 0.0, 0.0]}}
+                       for name, z in (("back", 0.1), ("top", -0.2))]}
+    (tmp_path / "assembly.json").write_text(json.dumps(poses))
+    code = main(["--parts", str(parts), "--poses", str(tmp_path / "assembly.json"), "--out", str(tmp_path / "out"),
+                 "--sheet-thickness", "4"])
+    err = capsys.readouterr().err
+    assert code == 2 and not (tmp_path / "out").exists()
+    assert "mesh intake repaired 1 of 2 part meshes (back: extruded 1 one-surface boards to 4 mm)" in err
