@@ -37,6 +37,7 @@ if TYPE_CHECKING:
 
 MAX_SEED = 2**32 - 1
 UNITS = ("m", "cm", "mm")
+MAX_SHEET_THICKNESS_MM = 100.0
 BAG_STORAGES = ("mcap", "sqlite3")  # rosbag2 storage of the exported bag (cell.ros2_export)
 PERCEPTION_HINT = ("note: the targets came from the picture, and the bundled model often misplaces parts (Part "
                    "Accuracy per category in benchmarks/RESULTS.md); the run plans only a predicted assembly whose "
@@ -60,6 +61,7 @@ class Options:
     poses: str | None = None
     accept_prediction: bool = False  # build a prediction that does not match its picture (else exit 5)
     bag_storage: str = "mcap"  # the ROS 2 bag: "mcap" (trajectory.mcap) or "sqlite3" (trajectory_bag/)
+    sheet_thickness_mm: float = 3.0  # a part drawn as one surface becomes a board this thick (planning.mesh_intake)
 
 
 @dataclass(frozen=True)
@@ -105,6 +107,10 @@ def check_options(options: Options, cli: bool = False) -> None:
     if options.units not in UNITS:
         raise BadOption(f"{named('units', options.units)}: give the units of the mesh files, one of "
                         f"{', '.join(UNITS)}")
+    thickness = options.sheet_thickness_mm
+    if not (_is_number(thickness) and 0 < thickness <= MAX_SHEET_THICKNESS_MM):
+        raise BadOption(f"{named('sheet_thickness', thickness)}: give the thickness of a one-surface board in mm, "
+                        f"above 0 and at most {MAX_SHEET_THICKNESS_MM:g} (hardboard is 3 mm)")
     if options.bag_storage not in BAG_STORAGES:
         raise BadOption(f"{named('bag_storage', options.bag_storage)}: give one of {', '.join(BAG_STORAGES)}")
     from planning.motion import available_planners
@@ -138,7 +144,7 @@ def assemble(parts: str | Path, image: str | Path | np.ndarray | None = None,
              planner: str = "RRTConnect", density: float | None = None,
              masses: str | Path | Mapping[str, float] | None = None, time_budget: float | None = None,
              pad: bool = False, animation: bool = True, accept_prediction: bool = False, bag_storage: str = "mcap",
-             verbose: bool = False) -> AssemblyResult:
+             sheet_thickness_mm: float = 3.0, verbose: bool = False) -> AssemblyResult:
     """Assemble the parts in ``parts`` (a folder of mesh files, one part each) into the object in ``image`` (a
     picture file or an (H, W, 3) uint8 RGB array: perception predicts the target poses) or at ``poses`` (an
     ``assembly.json``, or a mapping of part name to ``assembly_from_part`` :class:`Pose`: perception is skipped).
@@ -155,7 +161,7 @@ def assemble(parts: str | Path, image: str | Path | np.ndarray | None = None,
     options = Options(seed=seed, units=units, checkpoint=None if checkpoint is None else Path(checkpoint),
                       planner=planner, density=density, time_budget=time_budget, no_animation=not animation,
                       pad=pad, poses=_label(poses, "poses"), accept_prediction=accept_prediction,
-                      bag_storage=bag_storage)
+                      bag_storage=bag_storage, sheet_thickness_mm=sheet_thickness_mm)
     check_options(options)
     console = Console(quiet=not verbose, silent=not verbose)
     return run_checked(Path(parts), image, poses, scene, None if out is None else Path(out), masses, options,
@@ -203,7 +209,7 @@ def run_checked(parts: Path, image, poses, scene, out: Path | None, masses, opti
         check_out(out)
     notes: list[str] = []
     scene_config = scene if isinstance(scene, Scene) else load_scene(scene)
-    loaded = load_parts(parts, options.units, notes)
+    loaded = load_parts(parts, options.units, notes, options.sheet_thickness_mm / 1000.0)
     picture = load_image(image, options.pad, notes) if image is not None else None
     given = load_poses(poses, loaded.names) if poses is not None else None
     given_density = load_masses(masses, loaded) if masses is not None else {}
@@ -216,6 +222,10 @@ def run_checked(parts: Path, image, poses, scene, out: Path | None, masses, opti
     for note in notes:
         console.notice(f"note: {note}")
     console.say(f"{len(loaded.names)} parts from {parts}" + (f", image {image_label}" if picture is not None else ""))
+    from planning.mesh_intake import summary_line
+
+    if summary_line(loaded.mesh_intake):
+        console.say(summary_line(loaded.mesh_intake))
     if given_density:
         rest = len(loaded.names) - len(given_density)
         console.say(f"masses of {len(given_density)} part(s) from {masses_label}"
@@ -228,7 +238,9 @@ def run_checked(parts: Path, image, poses, scene, out: Path | None, masses, opti
                                "density_kg_m3": options.density or DEFAULT_DENSITY_KG_M3, "masses": masses_label,
                                "notes": notes},
                     "stages": console.stage_seconds, "trajectory_duration_s": None,
-                    "world_from_assembly": scene_config.fixture.world_from_assembly.to_dict(), "parts": []}
+                    "world_from_assembly": scene_config.fixture.world_from_assembly.to_dict(), "parts": [],
+                    "mesh_intake": {"sheet_thickness_m": options.sheet_thickness_mm / 1000.0,
+                                    "parts": loaded.mesh_intake}}
     from cell.pipeline import Pipeline, indented
 
     pipeline = Pipeline(scene_config, loaded, picture, given, options, console, report, given_density)

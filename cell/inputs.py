@@ -18,7 +18,8 @@ import numpy as np
 import trimesh
 
 from cell.errors import BadInput, BadMasses, BadParts, BadPicture, BadPoses
-from planning.assembly import ASSEMBLY_FILE, MAX_PARTS, UNIT_TO_METRES, AssemblyError, load_mesh, read_poses
+from planning.assembly import ASSEMBLY_FILE, MAX_PARTS, UNIT_TO_METRES, AssemblyError, load_mesh, read_poses, solid_mesh
+from planning.mesh_intake import DEFAULT_SHEET_THICKNESS_M
 from planning.pose import Pose
 
 MESH_SUFFIXES = (".obj", ".stl", ".ply", ".off", ".glb", ".gltf")
@@ -40,14 +41,18 @@ InputError = BadInput  # bad input; the message names the culprit
 @dataclass(frozen=True)
 class Parts:
     names: list[str]  # file stems, sorted
-    meshes: list[trimesh.Trimesh]  # own frames, metres
+    meshes: list[trimesh.Trimesh]  # own frames, metres: each part's solid (planning.mesh_intake)
     files: list[Path]
     skipped: list[Path] = field(default_factory=list)  # companion files (materials, textures), not parts
+    mesh_intake: dict[str, dict] = field(default_factory=dict)  # part name: what the intake did to its mesh
 
 
-def load_parts(folder: str | Path, units: str = "m", notes: list[str] | None = None) -> Parts:
-    """Every mesh file of ``folder`` (one part each, named after the file), in metres. Companion files of the
-    meshes (:data:`COMPANION_SUFFIXES`: ``.mtl`` materials, textures) are skipped, with a note."""
+def load_parts(folder: str | Path, units: str = "m", notes: list[str] | None = None,
+               sheet_thickness_m: float = DEFAULT_SHEET_THICKNESS_M) -> Parts:
+    """Every mesh file of ``folder`` (one part each, named after the file), in metres, each turned into the part's
+    solid by :mod:`planning.mesh_intake` (one-surface boards ``sheet_thickness_m`` thick, behind the drawn face).
+    Companion files of the meshes (:data:`COMPANION_SUFFIXES`: ``.mtl`` materials, textures) are skipped, with a
+    note."""
     folder = Path(folder)
     if not folder.exists():
         raise BadParts(f"{folder}: parts folder does not exist")
@@ -75,11 +80,18 @@ def load_parts(folder: str | Path, units: str = "m", notes: list[str] | None = N
             meshes.append(load_mesh(path, f"part {name!r}", UNIT_TO_METRES[units]))
         except AssemblyError as exc:
             raise BadParts(str(exc)) from exc
-    _check_size(folder, names, meshes, units)
+    _check_size(folder, names, meshes, units)  # on the meshes as given: a unit mistake is named as one
+    solids, intake = [], {}
+    for name, path, mesh in zip(names, files, meshes):
+        try:
+            solid, intake[name] = solid_mesh(mesh, f"part {name!r} ({path})", sheet_thickness_m)
+        except AssemblyError as exc:
+            raise BadParts(str(exc)) from exc
+        solids.append(solid)
     if skipped and notes is not None:
         shown = ", ".join(p.name for p in skipped[:6]) + (f" and {len(skipped) - 6} more" if len(skipped) > 6 else "")
         notes.append(f"{folder}: skipped {len(skipped)} file(s) that are not parts (materials, textures): {shown}")
-    return Parts(names, meshes, files, skipped)
+    return Parts(names, solids, files, skipped, intake)
 
 
 def _check_size(folder: Path, names: list[str], meshes: list[trimesh.Trimesh], units: str) -> None:

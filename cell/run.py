@@ -53,6 +53,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="the parts' material, for their weight (payload, joint torques, simulation; default 600, "
                         "wood; honeycomb board about 300, MDF 750, aluminium 2700)")
     parser.add_argument("--masses", metavar="FILE_OR_JSON", help=MASSES_HELP)
+    parser.add_argument("--sheet-thickness", type=float, default=3.0, metavar="MM",
+                        help="thickness given to a part drawn as one surface (a board without thickness), grown "
+                        "behind its drawn face (default 3 mm, a hardboard back panel)")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="seconds of kitting and motion planning per build (standing, then upside down) before "
                         "the planner stops trying other placements of the jig (default 300)")
@@ -80,7 +83,8 @@ def options_from_args(args: argparse.Namespace) -> Options:
     return Options(seed=args.seed, units=args.units, checkpoint=args.checkpoint, planner=args.planner,
                    density=args.density, time_budget=args.time_budget, no_animation=args.no_animation, pad=args.pad,
                    poses=str(args.poses) if args.poses is not None else None,
-                   accept_prediction=args.accept_prediction, bag_storage=args.bag_storage)
+                   accept_prediction=args.accept_prediction, bag_storage=args.bag_storage,
+                   sheet_thickness_mm=args.sheet_thickness)
 
 
 def _default_out(parts: Path) -> Path:

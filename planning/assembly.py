@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from planning.mesh_intake import DEFAULT_SHEET_THICKNESS_M, MeshIntakeError, intake_mesh
 from planning.pose import Pose
 
 MAX_PARTS = 20
@@ -61,6 +62,7 @@ class Assembly:
     name: str
     parts: list[AssemblyPart]
     metadata: dict = field(default_factory=dict)
+    mesh_intake: dict = field(default_factory=dict)  # part name: what planning.mesh_intake did to its mesh (read)
 
     @property
     def part_names(self) -> list[str]:
@@ -111,18 +113,9 @@ def stretched(assembly: Assembly, factors_xyz) -> Assembly:
 # ---------------------------------------------------------------------------------------------------------
 
 
-FLAT_RELATIVE_THICKNESS = 1e-6  # a mesh thinner than this fraction of its size is a flat sheet (rounding aside)
-
-
-def _thickness(vertices: np.ndarray) -> float:
-    """How far the points ``vertices`` (M, 3) spread along their least principal axis (their units)."""
-    centred = vertices - vertices.mean(axis=0)
-    least = np.linalg.svd(centred, full_matrices=False)[2][-1]
-    return float(np.ptp(centred @ least))
-
-
 def load_mesh(path: Path, where: str, scale_to_metres: float = 1.0) -> trimesh.Trimesh:
-    """Load and validate one mesh file (metres after ``scale_to_metres``); :class:`AssemblyError` names ``where``."""
+    """Load and validate one mesh file (metres after ``scale_to_metres``), as it is written (no repair: see
+    :func:`solid_mesh`); :class:`AssemblyError` names ``where``."""
     if not path.is_file():
         raise AssemblyError(f"{where}: mesh file {path} does not exist")
     try:
@@ -139,12 +132,21 @@ def load_mesh(path: Path, where: str, scale_to_metres: float = 1.0) -> trimesh.T
         raise AssemblyError(f"{where}: mesh file {path} has non-finite vertex coordinates")
     if loaded.area <= 0 or float(np.max(loaded.extents)) <= 0:
         raise AssemblyError(f"{where}: mesh file {path} is degenerate (zero area)")
-    if _thickness(np.asarray(loaded.vertices)) <= FLAT_RELATIVE_THICKNESS * float(np.max(loaded.extents)):
-        raise AssemblyError(f"{where}: mesh file {path} is flat (no thickness), so it has no volume to weigh or "
-                            "to collide with; give the part as a solid (a board with its thickness)")
     if scale_to_metres != 1.0:
         loaded.apply_scale(scale_to_metres)
     return loaded
+
+
+def solid_mesh(mesh: trimesh.Trimesh, where: str, sheet_thickness_m: float = DEFAULT_SHEET_THICKNESS_M,
+               outward: np.ndarray | None = None):
+    """The solid of a part mesh (metres, part frame) through :func:`planning.mesh_intake.intake_mesh`, and the
+    intake's record: ``(mesh, record)``; a mesh that no repair makes a solid raises :class:`AssemblyError` naming
+    ``where``. ``outward``: (3,) part frame, away from the assembly's centre (the side a one-surface board grows)."""
+    try:
+        intake = intake_mesh(mesh, where, sheet_thickness_m, outward)
+    except MeshIntakeError as exc:
+        raise AssemblyError(str(exc)) from exc
+    return intake.mesh, intake.to_json()
 
 
 def _parse_pose(entry: object, where: str) -> Pose:
@@ -216,8 +218,10 @@ def read_poses(json_path: str | os.PathLike) -> dict[str, Pose]:
     return poses
 
 
-def read_assembly(folder: str | os.PathLike) -> Assembly:
-    """Read and validate an assembly folder. Meshes and positions come back in metres."""
+def read_assembly(folder: str | os.PathLike, sheet_thickness_m: float = DEFAULT_SHEET_THICKNESS_M) -> Assembly:
+    """Read and validate an assembly folder. Meshes and positions come back in metres, each mesh the part's solid
+    (:func:`solid_mesh`: a clean closed mesh as it is; one-surface boards ``sheet_thickness_m`` thick, grown away
+    from the assembly's centre), what the intake did in ``mesh_intake``."""
     folder = Path(folder)
     json_path = folder / ASSEMBLY_FILE
     if not folder.is_dir():
@@ -230,8 +234,16 @@ def read_assembly(folder: str | os.PathLike) -> Assembly:
         pose = _parse_pose(entry.get("pose"), where)
         mesh = load_mesh(folder / entry["mesh"], where, scale)
         parts.append(AssemblyPart(entry["name"], mesh, Pose(pose.position * scale, pose.quat_wxyz), entry["mesh"]))
+    # the assembly's centre (the middle of its bounds), for the side each one-surface board grows to
+    centre = Assembly("", parts).bounds().mean(axis=0)
+    records = {}
+    for part in parts:
+        pose = part.assembly_from_part
+        outward = pose.rotation.T @ (pose.apply(part.mesh.bounds.mean(axis=0)) - centre)
+        part.mesh, records[part.name] = solid_mesh(part.mesh, f"{json_path}: part {part.name!r}",
+                                                   sheet_thickness_m, outward)
     metadata = {k: v for k, v in data.items() if k not in ("name", "parts", "units", "up")}
-    return Assembly(name=str(data.get("name", folder.name)), parts=parts, metadata=metadata)
+    return Assembly(name=str(data.get("name", folder.name)), parts=parts, metadata=metadata, mesh_intake=records)
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -157,8 +157,10 @@ class _Planner:
         """How far ``name`` moves along its removal direction ``k`` until it lies beyond every part of ``present``
         it overlaps at the targets, and the part it leaves last ((0, None) when it overlaps none)."""
         direction = self.directions[name][k]
+        # by travel only: a partner it leaves at once (travel 0, a flat piece flush with it) ties with (0, None)
         return max([(travel_to_clear_m(self.world_vertices[name], self.world_vertices[other], direction), other)
-                    for other in self.overlap_partners(name) if other in present] + [(0.0, None)])
+                    for other in self.overlap_partners(name) if other in present] + [(0.0, None)],
+                   key=lambda exit_and_part: exit_and_part[0])
 
     def free_directions(self, name: str, present: frozenset,
                         limit: int) -> tuple[list[int], dict[int, list[str]]]:

@@ -298,7 +298,9 @@ def _first_hits(mesh: trimesh.Trimesh, origins: np.ndarray,
     if planes is None:
         locations, ray_index, tri_index = mesh.ray.intersects_location(origins, directions, multiple_hits=False)
         order = np.argsort(ray_index, kind="stable")  # deterministic order, whatever the ray engine returns
-        return locations[order], ray_index[order], np.asarray(mesh.face_normals)[tri_index[order]]
+        # without a hit the ray engine gives a flat (0,) array of locations: keep the (H, 3) shape
+        return (locations.reshape(-1, 3)[order], ray_index[order],
+                np.asarray(mesh.face_normals)[tri_index[order]].reshape(-1, 3))
     normals, offsets = planes
     rate = directions @ normals.T  # (R, F): how fast the ray approaches each face plane
     room = offsets - origins @ normals.T  # (R, F): >= 0 on the inner side

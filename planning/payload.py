@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from planning.convex import convex_pieces
+from planning.convex import convex_hull, convex_pieces
 from planning.pose import Pose
 from planning.timing import JointLimits
 
@@ -92,11 +92,15 @@ class MassProperties:
 
 
 def mass_properties(mesh: trimesh.Trimesh, density_kg_m3: float = DEFAULT_DENSITY_KG_M3) -> MassProperties:
-    """Mass, centre of mass and principal inertia of a part of uniform density (its mesh if closed, else the
-    union of its convex pieces); mesh in metres, in the part frame."""
+    """Mass, centre of mass and principal inertia of a part of uniform density (its mesh if closed and manifold,
+    else the union of its convex pieces, or, where those enclose nothing, the mesh's convex hull: never NaN; the
+    part's solid comes from :mod:`planning.mesh_intake`); mesh in metres, in the part frame."""
     solid = mesh if mesh.is_volume else trimesh.util.concatenate(convex_pieces(mesh))
     solid = solid.copy()
     solid.density = density_kg_m3
+    if not (solid.mass > 0 and np.all(np.isfinite(solid.center_mass))):  # flat pieces: no volume to weigh
+        solid = convex_hull(mesh.vertices)
+        solid.density = density_kg_m3
     moments, axes = np.linalg.eigh(np.asarray(solid.moment_inertia, dtype=np.float64))
     if np.linalg.det(axes) < 0:
         axes[:, 0] *= -1.0

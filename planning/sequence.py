@@ -21,6 +21,7 @@ from planning.disassembly import OFF_FLOOR, UNSUPPORTING, SequenceResult, _direc
 from planning.fixture import PAD_HEIGHT_M, fixture_pads
 from planning.grasp import Grasp, antipodal_grasps, feasible_grasps
 from planning.gripper import clearance_gripper
+from planning.mesh_intake import summary_line
 from planning.pose import Pose
 from planning.robot_collision import LINK_CLEARANCE_M
 
@@ -38,7 +39,7 @@ def with_poses(assembly: Assembly, poses: dict[str, Pose], source: str) -> Assem
         ]))
         raise AssemblyError(f"{source}: poses do not match the assembly's parts ({details})")
     parts = [type(p)(p.name, p.mesh, poses[p.name], p.mesh_file) for p in assembly.parts]
-    return Assembly(assembly.name, parts, dict(assembly.metadata))
+    return Assembly(assembly.name, parts, dict(assembly.metadata), dict(assembly.mesh_intake))
 
 
 class GraspCandidates(Mapping):
@@ -200,6 +201,8 @@ def main(argv: list[str] | None = None) -> int:
     except AssemblyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if summary_line(assembly.mesh_intake):
+        print(summary_line(assembly.mesh_intake), file=sys.stderr)
     result = plan_assembly_sequence(assembly, args.seed, not args.no_grasps, args.time_budget)
     if result.success:
         print(f"{assembly.name}: {len(result.steps)} steps ({result.seconds:.2f} s)")

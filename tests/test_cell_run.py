@@ -226,9 +226,6 @@ def bad_inputs(tmp: Path, chair: Path) -> dict[str, tuple[list[str], str]]:
     flat = _parts_folder(tmp / "flat", {"a": BOX})
     (flat / "b.obj").write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")
     cases["degenerate mesh"] = (["--parts", str(flat), "--poses", poses], "degenerate")
-    sheet = _parts_folder(tmp / "sheet", {"a": BOX})
-    (sheet / "b.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0.1 0.1 0\nv 0 0.1 0\nf 1 2 3\nf 1 3 4\n")
-    cases["flat mesh"] = (["--parts", str(sheet), "--poses", poses], "b.obj is flat (no thickness)")
     many = _parts_folder(tmp / "many", {f"p{k:02d}": BOX for k in range(21)})
     cases["more than 20 parts"] = (["--parts", str(many), "--poses", poses], "21 parts, more than the 20")
     millimetres = _parts_folder(tmp / "mm", {"a": trimesh.creation.box([400.0, 300.0, 20.0])})
@@ -295,7 +292,7 @@ CASES = ["missing image", "unreadable image", "grayscale image", "RGBA image", "
          "small non-square image", "huge image", "checkpoint of random bytes", "checkpoint of text",
          "missing checkpoint", "misspelled scene key",
          "missing parts folder", "empty parts folder", "non-mesh file", "corrupt mesh", "mesh of random bytes",
-         "empty mesh", "degenerate mesh", "flat mesh", "more than 20 parts", "parts in millimetres",
+         "empty mesh", "degenerate mesh", "more than 20 parts", "parts in millimetres",
          "parts a thousand times too small", "metres read as millimetres", "NaN pose",
          "non-unit quaternion",
          "missing pose", "extra pose", "part under the floor", "target out of reach", "part over the payload",

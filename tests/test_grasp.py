@@ -524,3 +524,12 @@ def test_candidates_spread_over_the_part_beyond_the_edge_nearest_its_centre():
     assert on_leg_end, "no candidate on the lower half of the leg"
     scores = [g.score for g in grasps]
     assert scores == sorted(scores, reverse=True)
+
+
+def test_a_surface_that_no_ray_crosses_gives_no_pairs():
+    """A flat open sheet: no ray from its surface meets it again, and the first and last hits (both empty) join
+    without a shape error; no antipodal pairs, hence no grasps."""
+    sheet = trimesh.Trimesh([[0, 0, 0], [0.1, 0, 0], [0.1, 0.1, 0], [0, 0.1, 0]], [[0, 1, 2], [0, 2, 3]],
+                            process=False)
+    first, second = grasp_module._antipodal_pairs(sheet, 0, 200, 0.5, grasp_module._Stats())
+    assert first.shape == second.shape == (0, 3)

@@ -393,3 +393,24 @@ def test_box_distance_of_placed_meshes():
     turned = world_bounds(cube, Pose(np.array([1.0, 0.0, 0.0]), np.array([np.cos(np.pi / 8), 0.0, 0.0,
                                                                           np.sin(np.pi / 8)])))
     assert box_distance(here, turned) == 0.0  # a cube turned 45 deg about z reaches 0.71 m from its centre
+
+
+def test_a_partner_left_at_once_does_not_break_the_overlap_exit():
+    """A slab flush with a box's side (travel 0 to clear it along +x) that FCL reports as overlapping the box, as
+    it does for flat or shrunken pieces of real meshes: the exit is (0, None) or (0, 'box'), never a TypeError from
+    comparing the part's name with None."""
+    from planning.disassembly import _Planner
+
+    box = trimesh.creation.box([0.2, 0.2, 0.1])
+    box.apply_translation([0.0, 0.0, 0.05])
+    slab = trimesh.creation.box([0.2, 0.2, 0.02])
+    slab.apply_translation([0.2, 0.0, 0.09])
+    identity = Pose(np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+    planner = _Planner([ConvexPart.from_mesh("box", box), ConvexPart.from_mesh("slab", slab)], [identity] * 2,
+                       None, 0.0, 5.0)
+    planner._overlap_partners["slab"] = ("box",)  # what FCL said of a flat piece flush with the box
+    along_x = next(k for k, d in enumerate(planner.directions["slab"]) if np.allclose(d, [1.0, 0.0, 0.0]))
+    exit_m, _ = planner.overlap_exit("slab", along_x, frozenset({"box", "slab"}))
+    assert exit_m == 0.0
+    along_minus_x = next(k for k, d in enumerate(planner.directions["slab"]) if np.allclose(d, [-1.0, 0.0, 0.0]))
+    assert planner.overlap_exit("slab", along_minus_x, frozenset({"box", "slab"})) == (pytest.approx(0.4), "box")
