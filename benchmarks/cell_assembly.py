@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from cell.batch import Engine  # noqa: E402
 from cell.batch_jobs import Job  # noqa: E402
 from perception.synth import generate  # noqa: E402
-from planning.assembly import Assembly, AssemblyPart, read_assembly, write_assembly  # noqa: E402
+from planning.assembly import Assembly, AssemblyError, AssemblyPart, read_assembly, write_assembly  # noqa: E402
 from planning.pose import Pose  # noqa: E402
 
 SCALES = (1.0, 0.8, 0.6)
@@ -158,8 +158,13 @@ def main() -> int:
         unknown = set(args.only_furniture or ()) - {f.name for f in folders}
         if unknown:
             parser.error(f"--only-furniture: no assembly folder {', '.join(sorted(unknown))} in {args.furniture}")
-        objects += [("furniture", read_assembly(folder)) for folder in folders
-                    if not args.only_furniture or folder.name in args.only_furniture]
+        for folder in folders:
+            if args.only_furniture and folder.name not in args.only_furniture:
+                continue
+            try:
+                objects.append(("furniture", read_assembly(folder)))
+            except AssemblyError as exc:  # reported, and the rest still run
+                print(f"{folder.name}: not read ({exc})", flush=True)
     order = {assembly.name: k for k, (_, assembly) in enumerate(objects)}
     everything: dict[str, list[dict]] = {}
 

@@ -41,7 +41,7 @@ from perception.normalize import camera_from_canonical_norm
 from perception.placement import Placement, place_parts
 from perception.predict import PreparedParts, prepare_parts, run_network
 from perception.upright import angle_deg
-from planning.assembly import ASSEMBLY_FILE, Assembly, read_assembly
+from planning.assembly import ASSEMBLY_FILE, Assembly, AssemblyError, read_assembly
 from planning.collision import MAX_FITTING_OVERLAP_M, ConvexPart
 from planning.contact import FLOOR, all_grounded, contact_graph
 from planning.pose import Pose
@@ -255,14 +255,21 @@ def evaluate_assemblies(model: nn.Module, root: str | Path, views: int = 1, seed
     """Figures over every assembly folder under ``root`` (see the module docstring); ``limit``: the first N
     folders only (0: all). ``shuffle_parts``: the parts in a random order (:func:`shuffled_parts`), not the
     order of the folder's ``assembly.json`` (procedural generators list them in a fixed order). Adds ``objects``
-    and ``per_object`` (name, parts, PA, up error, inference time)."""
+    (those evaluated), ``unreadable`` (folder name and why, for folders that cannot be read: the others are still
+    evaluated) and ``per_object`` (name, parts, PA, up error, inference time)."""
     folders = assembly_folders(root)
     if limit:
         folders = folders[:limit]
     accumulator = Accumulator()
     bar = tqdm(total=len(folders) * views, unit="view", disable=not progress, desc="evaluate")
+    unreadable = []  # (folder name, why): an object that cannot be read is reported, and the rest evaluated
     for index, folder in enumerate(folders):
-        assembly = read_assembly(folder)
+        try:
+            assembly = read_assembly(folder)
+        except AssemblyError as exc:
+            unreadable.append({"name": folder.name, "error": str(exc)})
+            bar.update(views)
+            continue
         if shuffle_parts:
             assembly = shuffled_parts(assembly, seed, index)
         meshes = [p.mesh for p in assembly.parts]
@@ -279,7 +286,8 @@ def evaluate_assemblies(model: nn.Module, root: str | Path, views: int = 1, seed
                 bar.update()
     bar.close()
     figures = accumulator.summary()
-    figures["objects"] = len(folders)
+    figures["objects"] = len(folders) - len(unreadable)
+    figures["unreadable"] = unreadable
     figures["per_object"] = [
         {"name": o.name, "parts": o.parts, "part_accuracy": float(np.mean(o.before.correct)),
          "part_accuracy_repaired": float(np.mean(o.after.correct)) if o.after is not None else None,

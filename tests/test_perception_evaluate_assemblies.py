@@ -120,3 +120,18 @@ def test_grounded_needs_every_part_on_a_path_to_the_floor():
     lifted = list(poses)
     lifted[top] = Pose(poses[top].position + [0.0, 0.0, 0.05], poses[top].quat_wxyz)
     assert not grounded(contact_graph(convex, lifted))
+
+
+def test_an_unreadable_object_is_reported_and_the_rest_evaluated(checkpoint, folder, tmp_path):
+    import shutil
+
+    root = tmp_path / "assemblies"
+    shutil.copytree(folder, root)
+    broken = root / "broken_0"
+    broken.mkdir()
+    (broken / "assembly.json").write_text("{not json")
+    model, *_ = load_for_inference(checkpoint)
+    figures = evaluate_assemblies(model, root, views=1, seed=7, repair=False)
+    assert figures["objects"] == 2 and len(figures["per_object"]) == 2
+    assert [u["name"] for u in figures["unreadable"]] == ["broken_0"] and "assembly.json" in figures["unreadable"][0][
+        "error"]
