@@ -12,8 +12,9 @@ process on that picture and the loose parts (bundled weights, ``--no-animation``
 ``OUT/runs/NAME``, its log in ``OUT/runs/.batch/``; ``--density`` is passed on), as a job of ``python -m
 cell.batch``: one after another, or ``--workers N`` side by side on a local Dask cluster. Prints a Markdown table:
 per object the exit code, the stage that failed, the wall time, the deepest overlap left after the pose repair
-(what ``cell.run`` refuses above 30 mm) and the start of the failure's message. A success means the cell built
-the *predicted* assembly; each run's ``overview.png`` shows how far that is from the picture.
+(what ``cell.run`` refuses above 30 mm) and the start of the failure's message. Exit 5: the predicted assembly
+did not match the picture and nothing was planned; a success means the cell built the predicted assembly and it
+matches the picture (``report.json``'s ``picture_agreement``); each run's ``overview.png`` shows both.
 """
 
 from __future__ import annotations
