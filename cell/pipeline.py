@@ -197,9 +197,9 @@ class Pipeline:
             self.entries[name]["on_object"] = round(fraction, 4)
         worst = agreement.worst_part()
         self.console.say(f"    agreement with the picture: silhouette IoU {agreement.silhouette_iou:.2f} (at least "
-                         f"{MIN_SILHOUETTE_IOU:.2f} agrees), {100 * agreement.edge_recall:.0f}% of its edges explained "
-                         f"(at least {100 * MIN_EDGE_RECALL:.0f}%); part {worst[0]!r} lies {100 * worst[1]:.0f}% on "
-                         "the object")
+                         f"{MIN_SILHOUETTE_IOU:.2f} agrees); it explains {100 * agreement.edge_recall:.0f}% of the "
+                         f"picture's edges (at least {100 * MIN_EDGE_RECALL:.0f}%); part {worst[0]!r} lies "
+                         f"{100 * worst[1]:.0f}% on the object")
         if agrees:
             return
         if accepted:
