@@ -65,7 +65,8 @@ def render_picture(name: str, folder: Path, out: Path) -> Path:
 def picture_job(name: str, folder: Path, picture: Path, timeout_s: float, density_kg_m3: float | None) -> Job:
     """The cell on the picture and the loose parts: a job of ``python -m cell.batch``."""
     options = {"seed": 0, "animation": False} | ({} if density_kg_m3 is None else {"density": density_kg_m3})
-    return Job(name, str(folder), folder / "parts", image=picture, options=options, timeout_s=timeout_s)
+    folder = folder.resolve()  # a job's paths are absolute: it runs wherever its worker runs
+    return Job(name, str(folder), folder / "parts", image=picture.resolve(), options=options, timeout_s=timeout_s)
 
 
 def record_of(name: str, result: dict, run_out: Path) -> dict:
