@@ -71,7 +71,7 @@ def test_a_batch_on_a_local_cluster_reports_each_object_and_resumes(objects, tmp
         assert record["trajectory_duration_s"] == pytest.approx(report["trajectory_duration_s"], abs=1e-3)
         assert record["max_position_error_mm"] <= 5.0 and record["parts_within_tolerance"] == 1
         assert sorted(p.name for p in (out / name).iterdir()) == ["overview.png", "program.json", "report.json",
-                                                                  "trajectory.csv"]  # --no-animation passed on
+                                                                  "trajectory.csv", "trajectory.mcap"]  # no GIF
     rushed = records["rushed"]
     report = json.loads((out / "rushed" / "report.json").read_text())
     assert (rushed["status"], rushed["exit_code"]) == ("planning failed", 3)

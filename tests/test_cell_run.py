@@ -203,7 +203,7 @@ def bad_inputs(tmp: Path, chair: Path) -> dict[str, tuple[list[str], str]]:
     scene.write_text((scenes_root() / DEFAULT_SCENE).read_text().replace("payload_kg = 3.0", "payload_kgg = 1.0"))
     cases["misspelled scene key"] = (["--parts", parts, "--poses", poses, "--scene", str(scene)],
                                      "[robot] has no key 'payload_kgg' (did you mean 'payload_kg'?); its keys are "
-                                     "urdf, world_from_base, home_q, payload_kg")
+                                     "model, urdf, world_from_base, home_q, payload_kg")
     cases["huge image"] = (["--image", str(_png(tmp / "huge.png", "RGB", (5000, 5000))), "--parts", parts],
                            "larger than 4096x4096")
     cases["missing parts folder"] = (["--parts", str(tmp / "none"), "--poses", poses], "parts folder does not exist")

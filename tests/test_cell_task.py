@@ -175,7 +175,8 @@ def test_an_insertion_keeps_the_part_on_its_straight_line(panda):
     and the timing's default blends the TCP strayed 0.35 mm here (0.55 mm on the cabinet, whose top caught on a
     side)."""
     world = world_with(panda, {})
-    level = Pose([0.55, 0.0, 0.4], [np.sqrt(0.5), 0.0, np.sqrt(0.5), 0.0])  # TCP z (approach) along world +x
+    # TCP z (approach) along world +x, high enough for the Panda's datasheet joint ranges to reach it level
+    level = Pose([0.55, 0.0, 0.47], [np.sqrt(0.5), 0.0, np.sqrt(0.5), 0.0])
     assert level.rotation[:, 2] == pytest.approx([1.0, 0.0, 0.0], abs=1e-9)
     q = world.solve_ik(level, np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8]), lambda q: True, "bar", "test")
     path, stops = _insertion(world, q, level, DOWN, np.zeros(3), lambda q: True, "bar")
