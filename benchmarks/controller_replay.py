@@ -1,4 +1,4 @@
-"""Exported programs as a controller receives and plays them, checked against Franka's published Panda limits.
+"""Exported programs as a controller receives and plays them, checked against Franka's published limits.
 
     python -m benchmarks.controller_replay OUT_FOLDER [OUT_FOLDER ...] [--json results.json]
 
@@ -12,7 +12,8 @@ For each output folder of ``python -m cell.run`` (``trajectory.csv``, ``trajecto
   and the peaks of velocity, acceleration and jerk (the commanded acceleration's change per 1 ms cycle; the CSV's
   by finite differences) as fractions of the published limits, and how far the playback strays from the CSV (rad).
 
-The limits are written out here (Franka's datasheet for the Panda / FER), not taken from the code under test.
+The limits are written out here (Franka's datasheets for the Panda / FER and the FR3, chosen by the program's
+``robot``), not taken from the code under test.
 """
 
 from __future__ import annotations
@@ -24,11 +25,19 @@ from pathlib import Path
 
 import numpy as np
 
-LOWER = np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973])
-UPPER = np.array([2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973])
-VELOCITY = np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61])
-ACCELERATION = np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])
-JERK = np.array([7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0])
+# per robot model (program.json's "robot"): lower, upper (rad), velocity, acceleration, jerk (rad/s^n)
+DATASHEETS = {
+    "panda": (np.array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973]),
+              np.array([2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973]),
+              np.array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61]),
+              np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0]),
+              np.array([7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0])),
+    "fr3": (np.array([-2.7437, -1.7837, -2.9007, -3.0421, -2.8065, 0.5445, -3.0159]),
+            np.array([2.7437, 1.7837, 2.9007, -0.1518, 2.8065, 4.5169, 3.0159]),
+            np.array([2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26]),
+            np.full(7, 10.0),
+            np.full(7, 5000.0)),
+}
 
 
 def measure(folder: Path) -> dict:
@@ -36,10 +45,13 @@ def measure(folder: Path) -> dict:
 
     from planning.controller_replay import ControllerTrajectory, replay
 
+    robot = json.loads((folder / "program.json").read_text())["robot"]
+    LOWER, UPPER, VELOCITY, ACCELERATION, JERK = DATASHEETS[robot]  # noqa: N806 (the datasheet's constants)
     with open(folder / "trajectory.csv", newline="") as handle:
         table = np.array(list(csv.reader(handle))[1:], dtype=np.float64)
     q, qd, qdd = table[:, 1:8], table[:, 8:15], table[:, 15:22]
-    result = {"folder": str(folder), "duration_s": float(table[-1, 0]), "motions": 0, "points": 0, "mismatches": 0,
+    result = {"folder": str(folder), "robot": robot, "duration_s": float(table[-1, 0]), "motions": 0, "points": 0,
+              "mismatches": 0,
               "csv": {"margin_rad": float(np.min([q - LOWER, UPPER - q])),
                       "velocity": float((np.abs(qd) / VELOCITY).max()),
                       "acceleration": float((np.abs(qdd) / ACCELERATION).max()),
