@@ -78,6 +78,7 @@ class Pipeline:
         self.target: Assembly | None = None
         self.prediction = None  # perception.predict.Prediction, for a run from a picture
         self.agreement = None  # perception.agreement.PictureAgreement of the repaired targets with the picture
+        self.object_mask: np.ndarray | None = None  # (224, 224) bool: the object in the picture
         self.plan = None
         self.world_from_target: Pose | None = None  # the target's assembly frame on the jig, once planned
         self.simulation = None
