@@ -30,7 +30,6 @@ from planning.assembly import Assembly, AssemblyPart
 from planning.collision import MAX_FITTING_OVERLAP_M
 from planning.payload import DEFAULT_DENSITY_KG_M3
 from planning.pose import Pose
-from planning.robot_limits import robot_limits
 
 # a predicted assembly agrees with its picture from this silhouette IoU on, where its drawing also explains this share
 # of the picture's edges inside the object (perception.agreement; calibrated by benchmarks/picture_agreement.py)
@@ -160,12 +159,12 @@ class Pipeline:
         noise = pixel_noise(self.image)
         if noise > MAX_PIXEL_NOISE:
             raise BadPicture(f"{where}: the picture looks like noise (neighbouring pixels differ by {noise:.0f} of 255 "
-                           f"on median, a photo by a few); give a picture of the assembled object")
+                             f"on median, a photo by a few); give a picture of the assembled object")
         mask, source = object_mask(self.image, prediction.foreground)
         self.object_mask, self.report["perception"]["object_mask"] = mask, source
         if not holds_an_object(mask):
             raise BadPicture(f"{where}: no object found in the picture (it covers {100 * mask.mean():.1f}% of it, by "
-                           f"the {source}); give a picture of the assembled object, filling much of the frame")
+                             f"the {source}); give a picture of the assembled object, filling much of the frame")
         for name in self.parts.names:
             self.entries[name]["predicted_camera_from_part"] = pose_json(prediction.camera_from_part[name])
             self.entries[name]["predicted_assembly_from_part"] = pose_json(prediction.assembly_from_part[name])
@@ -190,7 +189,7 @@ class Pipeline:
             shortfalls.append(f"it explains {100 * agreement.edge_recall:.0f}% of the picture's edges < "
                               f"{100 * MIN_EDGE_RECALL:.0f}%")
         agrees = not shortfalls
-        accepted = bool(getattr(self.args, "accept_prediction", False))
+        accepted = self.args.accept_prediction
         self.report["picture_agreement"] = {**agreement.to_dict(), "min_silhouette_iou": MIN_SILHOUETTE_IOU,
                                             "min_edge_recall": MIN_EDGE_RECALL, "agrees": agrees,
                                             "accepted_anyway": accepted and not agrees}
@@ -413,12 +412,12 @@ class Pipeline:
     def _check_limits(self) -> None:
         """The timed program within the arm's limits, on its own samples and as the controller plays its exported
         points (:func:`cell.program.check_controller_replay`), or :class:`StageFailed` (exit 3, stage "timing")."""
-        from cell.program import CSV_RATE_HZ, LimitViolation, check_controller_replay, check_limits
+        from cell.program import CSV_RATE_HZ, LimitViolation, arm_limits, check_controller_replay, check_limits
 
         samples = self.plan.program.sample(CSV_RATE_HZ)
         lower, upper = self.plan.joint_limits
         try:
-            check_limits(samples, lower, upper, robot_limits(self.plan.program.robot))
+            check_limits(samples, lower, upper, arm_limits(self.plan.program.robot))
         except LimitViolation as exc:
             raise StageFailed(EXIT_PLANNING, "timing", f"the timed program breaks a limit: {exc}") from exc
         try:
@@ -472,7 +471,7 @@ class Pipeline:
         if self.plan is not None and self.samples is not None:
             lower, upper = self.plan.joint_limits
             write_exports(self.plan.program, folder, lower, upper, self.samples, self.points,
-                          getattr(self.args, "bag_storage", "mcap"))
+                          self.args.bag_storage)
         if self.target is not None:
             final = None
             if self.simulation is not None:

@@ -45,23 +45,24 @@ GRIPPER_TIME_S = 0.5
 GRIPPER_SPEED_M_S = 0.1  # the fingers' speed of a gripper command (franka_gripper's default)
 GRASP_EPSILON_M = 0.005  # a grasp succeeds when the fingers stop this close to the part's width (Franka's default)
 LIMIT_TOLERANCE = 1e-6  # relative
-# the ROS 2 driver's arm_id per robot model: joints "<arm_id>_joint1..7", flange "<arm_id>_link8" (franka_ros2
-# names the Panda "fer", Franka Emika Robot)
-ARM_IDS = {"panda": "fer", "fr3": "fr3"}
+def arm_limits(robot: str) -> RobotLimits:
+    """The published limits and ROS 2 names of the program's ``robot`` (:mod:`planning.robot_limits`); a
+    ValueError naming the known models otherwise."""
+    try:
+        return robot_limits(robot)
+    except KeyError as exc:
+        raise ValueError(exc.args[0]) from None
 
 
 def controller_joint_names(robot: str) -> list[str]:
     """The arm's joint names as its ROS 2 driver (franka_ros2) names them: ``fer_joint1..7`` for the Panda,
     ``fr3_joint1..7`` for the FR3."""
-    if robot not in ARM_IDS:
-        raise ValueError(f"unknown robot model {robot!r}; known: {', '.join(ARM_IDS)}")
-    return [f"{ARM_IDS[robot]}_joint{k}" for k in range(1, 8)]
+    return list(arm_limits(robot).ros_joint_names)
 
 
 def flange_frame(robot: str) -> str:
     """The flange link (the frame of a SetLoad request) as the ROS 2 driver names it."""
-    controller_joint_names(robot)
-    return f"{ARM_IDS[robot]}_link8"
+    return arm_limits(robot).ros_flange_frame
 
 
 @dataclass
@@ -248,7 +249,7 @@ def check_controller_replay(program: Program, samples: dict[str, np.ndarray], lo
     cycles = _checked_samples(program, samples)
     points = motion_points(program, samples) if points is None else points
     names = controller_joint_names(program.robot)
-    arm = robot_limits(program.robot)  # the real arm's published limits
+    arm = arm_limits(program.robot)  # the real arm's published limits
     for motion in points:
         step = program.steps[motion.step]
         replayed = replay(motion.trajectory(samples), CONTROL_RATE_HZ)
@@ -383,7 +384,7 @@ def write_exports(program: Program, folder: Path, lower: np.ndarray, upper: np.n
     from cell.ros2_export import write_bag
 
     samples = program.sample(CSV_RATE_HZ) if samples is None else samples
-    check_limits(samples, lower, upper, robot_limits(program.robot))
+    check_limits(samples, lower, upper, arm_limits(program.robot))
     points = check_controller_replay(program, samples, lower, upper, points)
     folder.mkdir(parents=True, exist_ok=True)
     header = (["t"] + [f"q_{n}" for n in ARM_JOINTS] + [f"qd_{n}" for n in ARM_JOINTS]

@@ -1,7 +1,7 @@
 """The program as a ROS 2 bag (rosbag2, written with ``rosbags``): what each controller of a Franka arm receives, in
 order, at the time the program sends it (nanoseconds from the program's start).
 
-Topics (``<arm_id>``: ``fer`` for the Panda, ``fr3`` for the FR3, :data:`cell.program.ARM_IDS`):
+Topics (``<arm_id>``: ``fer`` for the Panda, ``fr3`` for the FR3, :attr:`planning.robot_limits.RobotLimits.ros_arm_id`):
 
 - ``/<arm_id>_arm_controller/joint_trajectory``: ``trajectory_msgs/msg/JointTrajectory``, one per motion, for
   ros2_control's ``joint_trajectory_controller``: ``header.stamp`` zero (start on arrival), the joint names as
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cell.program import ARM_IDS, GripperStep, MotionPoints, Program, controller_joint_names, flange_frame
+from cell.program import GripperStep, MotionPoints, Program, arm_limits, controller_joint_names, flange_frame
 
 BAG_STORAGES = ("mcap", "sqlite3")
 MCAP_FILE = "trajectory.mcap"  # storage "mcap": one file (ROS 2 Jazzy's default storage)
@@ -44,7 +44,7 @@ FRANKA_MSGS = {
 
 
 def trajectory_topic(robot: str) -> str:
-    return f"/{ARM_IDS[robot]}_arm_controller/joint_trajectory"
+    return f"/{arm_limits(robot).ros_arm_id}_arm_controller/joint_trajectory"
 
 
 def typestore(storage: str = "mcap"):

@@ -27,12 +27,13 @@ DATASHEET_MARGIN_RAD = 0.01
 
 @dataclass(frozen=True)
 class RobotLimits:
-    """One arm's published limits. ``model``: the name used in scene files (``[robot] model``); ``ros_joint_names``:
-    the arm's joint names in franka_ros2; arrays (7,) float64 in joint order."""
+    """One arm's published limits. ``model``: the name used in scene files (``[robot] model``); ``ros_arm_id``: the
+    arm's id in franka_ros2, which names its joints ``<id>_joint1..7`` and its flange ``<id>_link8``; arrays (7,)
+    float64 in joint order."""
 
     model: str
     description: str
-    ros_joint_names: tuple[str, ...]
+    ros_arm_id: str
     lower_rad: np.ndarray
     upper_rad: np.ndarray
     velocity_rad_s: np.ndarray
@@ -40,6 +41,14 @@ class RobotLimits:
     jerk_rad_s3: np.ndarray
     torque_nm: np.ndarray
     payload_kg: float
+
+    @property
+    def ros_joint_names(self) -> tuple[str, ...]:
+        return tuple(f"{self.ros_arm_id}_joint{k}" for k in range(1, 8))
+
+    @property
+    def ros_flange_frame(self) -> str:
+        return f"{self.ros_arm_id}_link8"
 
     def planning_range(self, sim_lower_rad: np.ndarray, sim_upper_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(lower, upper) rad: the datasheet range less :data:`DATASHEET_MARGIN_RAD` at each end, within the
@@ -60,7 +69,7 @@ def _array(values) -> np.ndarray:
 PANDA = RobotLimits(
     model="panda",
     description="Franka Emika Panda (FER)",
-    ros_joint_names=tuple(f"fer_joint{i}" for i in range(1, 8)),
+    ros_arm_id="fer",  # Franka Emika Robot
     lower_rad=_array([-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973]),
     upper_rad=_array([2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973]),
     velocity_rad_s=_array([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61]),
@@ -73,7 +82,7 @@ PANDA = RobotLimits(
 FR3 = RobotLimits(
     model="fr3",
     description="Franka Research 3 (FR3)",
-    ros_joint_names=tuple(f"fr3_joint{i}" for i in range(1, 8)),
+    ros_arm_id="fr3",
     lower_rad=_array([-2.7437, -1.7837, -2.9007, -3.0421, -2.8065, 0.5445, -3.0159]),
     upper_rad=_array([2.7437, 1.7837, 2.9007, -0.1518, 2.8065, 4.5169, 3.0159]),
     velocity_rad_s=_array([2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26]),
