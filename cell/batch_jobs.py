@@ -29,7 +29,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from cell.inputs import MAX_DENSITY_KG_M3, MIN_DENSITY_KG_M3
+from cell.api import Options, check_options
+from cell.errors import BadOption
 from planning.assembly import ASSEMBLY_FILE
 
 JOB_LIST_SUFFIXES = (".csv", ".json")
@@ -63,6 +64,8 @@ RUN_OPTIONS = {
                                    "picture (true or false)"),
     "bag_storage": RunOption("--bag-storage", "text", "the ROS 2 bag's storage: mcap or sqlite3"),
 }
+# the job keys that are cell.api.Options fields, checked as cell.run checks them
+CHECKED_OPTIONS = ("seed", "units", "planner", "density", "time_budget", "accept_prediction", "bag_storage")
 JOB_KEYS = ("name", "assembly", "parts", "poses", "image", "timeout", *RUN_OPTIONS)
 
 
@@ -221,13 +224,12 @@ def _job(entry: dict, where: str, base: Path) -> Job:
             options[key] = path_of(key, "file") if option.kind == "path" else _value(entry[key], option.kind, key,
                                                                                        where)
     timeout_s = _value(entry["timeout"], "float", "timeout", where) if "timeout" in entry else None
-    for key, value in (("timeout", timeout_s), ("time_budget", options.get("time_budget"))):
-        if value is not None and not value > 0:
-            raise BatchInputError(f"{where}: {key} {value:g}: give a number of seconds above 0")
-    density = options.get("density")
-    if density is not None and not MIN_DENSITY_KG_M3 <= density <= MAX_DENSITY_KG_M3:
-        raise BatchInputError(f"{where}: density {density:g}: give the parts' density in kg/m3, from "
-                              f"{MIN_DENSITY_KG_M3:.0f} to {MAX_DENSITY_KG_M3:.0f} (wood is 600 kg/m3)")
+    if timeout_s is not None and not timeout_s > 0:
+        raise BatchInputError(f"{where}: timeout {timeout_s:g}: give a number of seconds above 0")
+    try:  # the options' ranges as cell.run checks them (seed, planner, density, time budget, ...)
+        check_options(Options(**{key: options[key] for key in CHECKED_OPTIONS if key in options}))
+    except BadOption as exc:
+        raise BatchInputError(f"{where}: {exc}") from None
     return Job(name, where, parts, poses, image, options, timeout_s)
 
 

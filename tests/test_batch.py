@@ -153,6 +153,10 @@ def test_a_job_list_with_an_unknown_key_or_a_bad_value_is_named(objects, tmp_pat
     assert f"{table} row 3: seed 'one': expected a whole number" in _refused([str(table)], capsys)
     table.write_text(f"parts,poses\n{objects / 'board' / 'parts'},{objects / 'board' / 'missing.json'}\n")
     assert f"{table} row 2: poses {objects / 'board' / 'missing.json'}: not found" in _refused([str(table)], capsys)
+    table.write_text(f"assembly,planner,density\n{objects / 'board'},FooPlanner,600\n{objects / 'plate'},RRT,5\n")
+    assert f"{table} row 2: planner='FooPlanner': not a planner" in _refused([str(table)], capsys)
+    table.write_text(f"assembly,density\n{objects / 'plate'},5\n")
+    assert f"{table} row 2: density=5.0: give the parts' density in kg/m3" in _refused([str(table)], capsys)
     assert not (tmp_path / "out").exists()
 
 
