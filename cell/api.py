@@ -224,8 +224,9 @@ def run_checked(parts: Path, image, poses, scene, out: Path | None, masses, opti
     console.say(f"{len(loaded.names)} parts from {parts}" + (f", image {image_label}" if picture is not None else ""))
     from planning.mesh_intake import summary_line
 
-    if summary_line(loaded.mesh_intake):
-        console.say(summary_line(loaded.mesh_intake))
+    repaired = summary_line(loaded.mesh_intake)
+    if repaired:
+        console.say(repaired)
     if given_density:
         rest = len(loaded.names) - len(given_density)
         console.say(f"masses of {len(given_density)} part(s) from {masses_label}"

@@ -144,8 +144,14 @@ class Pipeline:
         self.target = assembly
 
     def _predict(self) -> dict[str, Pose]:
+        from perception.agreement import MAX_PIXEL_NOISE, holds_an_object, object_mask, pixel_noise
         from perception.predict import PredictionError, predict
 
+        where = self.report["inputs"]["image"] or "the picture"
+        noise = pixel_noise(self.image)  # before the network: noise holds no object to predict
+        if noise > MAX_PIXEL_NOISE:
+            raise BadPicture(f"{where}: the picture looks like noise (neighbouring pixels differ by {noise:.0f} of 255 "
+                             f"on median, a photo by a few); give a picture of the assembled object")
         try:
             prediction = predict(self.image, dict(zip(self.parts.names, self.parts.meshes)),
                                  checkpoint=self.args.checkpoint)
@@ -153,13 +159,6 @@ class Pipeline:
             raise BadInput(str(exc)) from exc
         self.report["perception"] = prediction.summary()
         self.prediction = prediction
-        from perception.agreement import MAX_PIXEL_NOISE, holds_an_object, object_mask, pixel_noise
-
-        where = self.report["inputs"]["image"] or "the picture"
-        noise = pixel_noise(self.image)
-        if noise > MAX_PIXEL_NOISE:
-            raise BadPicture(f"{where}: the picture looks like noise (neighbouring pixels differ by {noise:.0f} of 255 "
-                             f"on median, a photo by a few); give a picture of the assembled object")
         mask, source = object_mask(self.image, prediction.foreground)
         self.object_mask, self.report["perception"]["object_mask"] = mask, source
         if not holds_an_object(mask):
