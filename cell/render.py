@@ -82,6 +82,9 @@ def sample_camera(rng: np.random.Generator, bounds_m: np.ndarray, fov_deg: float
     )
 
 
+MATERIALS = ("parts", "one", "few")  # Appearance.sample: a colour per part, one material, two or three
+
+
 @dataclass(frozen=True)
 class Appearance:
     """Colours and lighting of one rendering (all colours RGB in [0, 1])."""
@@ -96,11 +99,23 @@ class Appearance:
     shadow: bool
 
     @staticmethod
-    def sample(rng: np.random.Generator, num_parts: int) -> Appearance:
+    def sample(rng: np.random.Generator, num_parts: int, materials: str = "parts") -> Appearance:
+        """Random colours, backdrop and lighting. ``materials`` (:data:`MATERIALS`): ``parts``, every part its own
+        colour; ``one``, every part the same material, as a photo of a wooden chair shows it (only shading tells
+        its parts apart); ``few``, two or three materials shared among the parts (a frame and its panels). The
+        random numbers drawn are the same in every mode, so a view differs between modes in its parts' colours
+        only."""
+        if materials not in MATERIALS:
+            raise ValueError(f"materials must be one of {MATERIALS}, got {materials!r}")
         hues = rng.uniform(0.0, 1.0, num_parts)
         sat = rng.uniform(0.25, 0.9, num_parts)
         val = rng.uniform(0.45, 1.0, num_parts)
         parts = np.array([colorsys.hsv_to_rgb(h, s, v) for h, s, v in zip(hues, sat, val)]).reshape(num_parts, 3)
+        if materials == "one" and num_parts:
+            parts = np.repeat(parts[:1], num_parts, axis=0)
+        elif materials == "few" and num_parts:
+            palette = parts[: 2 if hues[0] < 0.5 else 3]  # two or three materials, as the first hue falls
+            parts = palette[np.arange(num_parts) % len(palette)]
         background = np.clip(rng.uniform(0.0, 1.0, 3) + rng.uniform(-0.15, 0.15, (2, 3)), 0.0, 1.0)
         az, el = rng.uniform(0, 2 * np.pi), rng.uniform(np.radians(25), np.radians(85))
         return Appearance(

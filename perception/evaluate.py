@@ -165,6 +165,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--keep-part-order", action="store_true", help="give the network the parts in the order "
                         "of the files, not in a random order (procedural objects list them in a fixed order)")
     parser.add_argument("--no-repair", action="store_true", help="with --assemblies: skip connectivity and repair")
+    parser.add_argument("--materials", choices=["parts", "one", "few"], default="parts",
+                        help="with --assemblies: a colour per part (default), one shared material, or two or three")
+    parser.add_argument("--solver", action="store_true", help="with --assemblies: also fit each prediction to its "
+                        "picture (perception.solver) and report it under after_solver, network / solver / repair")
     parser.add_argument("--json", help="write the figures to this JSON file")
     parser.add_argument("--limit", type=int, default=0, help="evaluate the first N samples (--data) or assembly "
                         "folders (--assemblies) only (0: all)")
@@ -188,11 +192,14 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"{checkpoint} holds model {kind!r}, not {args.model!r}")
         if args.assemblies:
             from perception.evaluate_assemblies import evaluate_assemblies
+            from perception.solver import SolverSettings
 
             with inference_threads(threads):
                 summary = evaluate_assemblies(model, args.assemblies, args.views, args.seed, not args.no_repair,
                                               config.model.max_parts, args.limit, not args.no_progress,
-                                              shuffle_parts=not args.keep_part_order)
+                                              shuffle_parts=not args.keep_part_order,
+                                              solver=SolverSettings() if args.solver else None,
+                                              materials=args.materials)
         else:
             with inference_threads(threads):
                 summary = evaluate_folder(model, args.data, args.split, args.limit, args.batch_size, device,
@@ -205,12 +212,18 @@ def main(argv: list[str] | None = None) -> int:
     rows = {name: summary}
     if "after_repair" in summary:
         rows[f"{name} + repair"] = summary["after_repair"]
+    if "after_solver" in summary:
+        stages = summary["after_solver"]["stages"]
+        print("picture solver, level-3 Part Accuracy (right objects: every part passes) over "
+              f"{summary['after_solver']['views']} views: " + "; ".join(
+                  f"{stage} {v['part_accuracy']:.3f} ({v['right_object_rate']:.3f})" for stage, v in stages.items()))
     print(format_table(rows))
     if args.assemblies:
         print(format_extras(summary))
     if args.json:
         record = {"model": kind, "checkpoint": Path(checkpoint).name, "image_size": config.model.image_size,
-                  **({"assemblies": Path(args.assemblies).name, "views": args.views} if args.assemblies
+                  **({"assemblies": Path(args.assemblies).name, "views": args.views, "materials": args.materials}
+                     if args.assemblies
                      else {"split": args.split}), "seed": args.seed, "shuffle_parts": not args.keep_part_order,
                   **summary}
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

@@ -40,6 +40,7 @@ from perception.metrics import AssemblyResult, MetricSummary, evaluate_assembly
 from perception.normalize import camera_from_canonical_norm
 from perception.placement import Placement, place_parts
 from perception.predict import PreparedParts, prepare_parts, run_network
+from perception.solver import SolverSettings, solve
 from perception.upright import angle_deg
 from planning.assembly import ASSEMBLY_FILE, Assembly, AssemblyError, read_assembly
 from planning.collision import MAX_FITTING_OVERLAP_M, ConvexPart
@@ -115,6 +116,9 @@ class ViewOutcome:
     deepest_overlap_after: dict | None = None  # after repair: {"parts": [a, b], "depth_m", "equivalent"}
     # the repaired and the true assembly drawn against the picture's object (perception.agreement): silhouette IoU
     agreement: dict = field(default_factory=dict)
+    solved: AssemblyResult | None = None  # after the picture solver (perception.solver), before repair
+    solved_repaired: AssemblyResult | None = None  # after the solver and the repair: what cell.run builds
+    solver: dict = field(default_factory=dict)  # the solver's figures (score, IoU before and after, seconds)
 
 
 @dataclass
@@ -158,12 +162,30 @@ class Accumulator:
                 if crossing else float("nan"),
                 "part_accuracy_crossing": mean_part_accuracy(crossing),
                 "part_accuracy_other": mean_part_accuracy(other)}
+        solved = [o for o in self.outcomes if o.solved_repaired is not None]
+        if solved:
+            figures["after_solver"] = _solver_figures(solved)
         figures["up_error_deg"] = _stats(up) | {"within_5_deg": float(np.mean(up <= 5.0)) if len(up) else float("nan")}
         figures["depth_error_m"] = _stats(np.array([o.depth_error_m for o in self.outcomes]))
         figures["inference_s"] = _stats(seconds)
         figures["inference_cpu_s"] = _stats(np.array([o.inference_cpu_s for o in self.outcomes]))
         figures["peak_memory_mb"] = peak_memory_mb()
         return figures
+
+
+def right_object_rate(results: list[AssemblyResult]) -> float:
+    """The fraction of objects whose every part passes Part Accuracy (what a robot cell needs)."""
+    return float(np.mean([np.all(r.correct) for r in results])) if results else float("nan")
+
+
+def _solver_figures(outcomes: list[ViewOutcome]) -> dict:
+    """The ablation over the views the solver ran on: network, + repair, + solver, + solver and repair."""
+    stages = {"network": [o.before for o in outcomes], "repair": [o.after for o in outcomes],
+              "solver": [o.solved for o in outcomes], "solver_repair": [o.solved_repaired for o in outcomes]}
+    figures = {name: {"part_accuracy": float(np.mean(np.concatenate([r.correct for r in results]))),
+                      "right_object_rate": right_object_rate(results)} for name, results in stages.items()}
+    return {**figures["solver_repair"], "stages": figures, "views": len(outcomes),
+            "seconds": _stats(np.array([o.solver["seconds"] for o in outcomes]))}
 
 
 def peak_memory_mb() -> float:
@@ -189,9 +211,12 @@ def _stats(values: np.ndarray) -> dict:
 
 def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: PreparedParts,
                   convex: list[ConvexPart] | None, prepare_s: tuple[float, float], max_parts: int,
-                  name: str, repair_settings: RepairSettings = DEFAULT_REPAIR) -> ViewOutcome:
+                  name: str, repair_settings: RepairSettings = DEFAULT_REPAIR,
+                  solver: SolverSettings | None = None) -> ViewOutcome:
     """Predict one rendered view and score it (``convex``: the parts' convex pieces for connectivity and repair;
-    ``None`` skips both). ``prepare_s``: (wall, CPU) seconds :func:`prepare_parts` took, counted as inference."""
+    ``None`` skips both). ``prepare_s``: (wall, CPU) seconds :func:`prepare_parts` took, counted as inference.
+    ``solver``: also fit the prediction to the picture (:func:`perception.solver.solve`) and score it, before and
+    after the repair."""
     bounds = assembly.bounds()
     centre_camera_m = view.camera_from_assembly.apply(0.5 * (bounds[0] + bounds[1]))
     gt_quat, gt_trans = truth_targets(view, parts, centre_camera_m)
@@ -221,6 +246,9 @@ def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: 
     quat_r, trans_r = network_frame(camera_from_repaired, parts, placement.centre_camera_m)
     outcome.after = evaluate_assembly(points, quat_r, trans_r, gt_quat, gt_trans, classes, view.visible_pixels)
     mask, _ = object_mask(view.rgb, foreground)
+    if solver is not None and mask.any():
+        _solve_view(outcome, view, parts, convex, placement, mask, solver, repair_settings,
+                    (points, gt_quat, gt_trans, classes))
     if mask.any():
         names = [p.name for p in convex]
         repaired_view = picture_agreement(mask, names, parts.meshes, camera_from_repaired, image=view.rgb)
@@ -242,6 +270,22 @@ def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: 
     return outcome
 
 
+def _solve_view(outcome: ViewOutcome, view: Rendering, parts: PreparedParts, convex: list[ConvexPart],
+                placement: Placement, mask: np.ndarray, settings: SolverSettings, repair_settings: RepairSettings,
+                truth: tuple) -> None:
+    """The solver's figures for one view, into ``outcome``: PA after it and after it and the repair."""
+    points, gt_quat, gt_trans, classes = truth
+    result = solve([c.piece_vertices for c in convex], parts.classes, placement.assembly_from_part,
+                   placement.camera_from_assembly, mask, settings)
+    outcome.solver = result.to_dict([c.name for c in convex])
+    for attribute, poses in (("solved", result.assembly_from_part),
+                             ("solved_repaired", repair_poses(convex, result.assembly_from_part, repair_settings)[0])):
+        quat, trans = network_frame([placement.camera_from_assembly @ p for p in poses], parts,
+                                    placement.centre_camera_m)
+        setattr(outcome, attribute, evaluate_assembly(points, quat, trans, gt_quat, gt_trans, classes,
+                                                      view.visible_pixels))
+
+
 def shuffled_parts(assembly: Assembly, seed: int, index: int) -> Assembly:
     """``assembly`` with its parts in a random order from ``numpy.random.default_rng([seed, index, 1])``
     (assembly ``index`` in sorted order): the network meets them unordered, as a user's parts come."""
@@ -251,12 +295,15 @@ def shuffled_parts(assembly: Assembly, seed: int, index: int) -> Assembly:
 
 def evaluate_assemblies(model: nn.Module, root: str | Path, views: int = 1, seed: int = 0, repair: bool = True,
                         max_parts: int = 20, limit: int = 0, progress: bool = False,
-                        repair_settings: RepairSettings = DEFAULT_REPAIR, shuffle_parts: bool = True) -> dict:
+                        repair_settings: RepairSettings = DEFAULT_REPAIR, shuffle_parts: bool = True,
+                        solver: SolverSettings | None = None, materials: str = "parts") -> dict:
     """Figures over every assembly folder under ``root`` (see the module docstring); ``limit``: the first N
     folders only (0: all). ``shuffle_parts``: the parts in a random order (:func:`shuffled_parts`), not the
-    order of the folder's ``assembly.json`` (procedural generators list them in a fixed order). Adds ``objects``
-    (those evaluated), ``unreadable`` (folder name and why, for folders that cannot be read: the others are still
-    evaluated) and ``per_object`` (name, parts, PA, up error, inference time)."""
+    order of the folder's ``assembly.json`` (procedural generators list them in a fixed order). ``solver``: also
+    fit each prediction to its picture (:mod:`perception.solver`; figures under ``after_solver``). ``materials``:
+    how the parts are coloured in the pictures (:data:`cell.render.MATERIALS`); the same views in every mode.
+    Adds ``objects`` (those evaluated), ``unreadable`` (folder name and why, for folders that cannot be read: the
+    others are still evaluated) and ``per_object`` (name, parts, PA, up error, inference time)."""
     folders = assembly_folders(root)
     if limit:
         folders = folders[:limit]
@@ -280,9 +327,10 @@ def evaluate_assemblies(model: nn.Module, root: str | Path, views: int = 1, seed
         rng = np.random.default_rng([seed, index])
         with AssemblyRenderer(assembly) as renderer:
             for k in range(views):
-                view = renderer.render(sample_camera(rng, assembly.bounds()), Appearance.sample(rng, len(meshes)))
+                camera = sample_camera(rng, assembly.bounds())  # the camera is drawn before the colours
+                view = renderer.render(camera, Appearance.sample(rng, len(meshes), materials))
                 accumulator.outcomes.append(evaluate_view(model, view, assembly, parts, convex, prepare_s, max_parts,
-                                                          f"{folder.name}/view{k}", repair_settings))
+                                                          f"{folder.name}/view{k}", repair_settings, solver))
                 bar.update()
     bar.close()
     figures = accumulator.summary()
@@ -293,6 +341,9 @@ def evaluate_assemblies(model: nn.Module, root: str | Path, views: int = 1, seed
          "part_accuracy_repaired": float(np.mean(o.after.correct)) if o.after is not None else None,
          "up_error_deg": round(o.up_error_deg, 3), "inference_s": round(o.inference_s, 4),
          "inference_cpu_s": round(o.inference_cpu_s, 4), "deepest_overlap_after": o.deepest_overlap_after,
-         "picture_agreement": o.agreement, **o.connectivity}
+         "picture_agreement": o.agreement, **o.connectivity,
+         **({"part_accuracy_solved": float(np.mean(o.solved_repaired.correct)),
+             "part_accuracy_solved_before_repair": float(np.mean(o.solved.correct)), "solver": o.solver}
+            if o.solved_repaired is not None else {})}
         for o in accumulator.outcomes]
     return figures

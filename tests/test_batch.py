@@ -126,6 +126,40 @@ def test_a_batch_on_a_local_cluster_reports_each_object_and_resumes(objects, tmp
     assert (direct / "trajectory.csv").read_bytes() == (out / "board" / "trajectory.csv").read_bytes()
 
 
+@pytest.mark.slow
+def test_a_job_whose_worker_dies_is_reported_and_run_once_more(objects, tmp_path):
+    """The worker process running a job is killed (as the kernel's OOM killer or a lost machine would): its
+    cell.run process dies with it, the job is run once more on the restarted worker, and the record says why."""
+    pytest.importorskip("distributed", reason='Dask distributed is not installed (pip install -e ".[cluster]")')
+    import time
+
+    import psutil
+
+    out = tmp_path / "batch"
+    batch = subprocess.Popen([sys.executable, "-m", "cell.batch", str(objects / "board"), "--out", str(out),
+                              "--workers", "1", "--no-animation", "--seed", "0"], stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, text=True)
+    try:
+        job, deadline = None, time.monotonic() + 120
+        while job is None and time.monotonic() < deadline and batch.poll() is None:
+            job = next((p for p in psutil.Process(batch.pid).children(recursive=True)
+                        if "cell.run" in " ".join(p.cmdline())), None)
+            time.sleep(0.2)
+        assert job is not None, "no cell.run process started"
+        worker = job.parent()
+        worker.kill()
+        job.wait(timeout=30)  # the job dies with its worker (no orphaned cell.run)
+        output, _ = batch.communicate(timeout=300)
+    finally:
+        if batch.poll() is None:
+            batch.kill()
+    assert batch.returncode == 0, output
+    assert "board: worker lost" in output and "running it once more" in output
+    record = json.loads((out / "summary.json").read_text())["objects"][0]
+    assert (record["status"], record["attempts"], record["retried_after"]) == ("success", 2, "worker lost")
+    assert json.loads((out / "board" / "report.json").read_text())["success"]
+
+
 # --- bad batch input: exit 2, the culprit named, nothing run ----------------------------------------------------
 
 

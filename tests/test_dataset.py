@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from perception.dataset import list_objects, load_object
-from perception.dataset.build import BuildConfig, build, object_path, split_of
+from perception.dataset.build import BuildConfig, build, materials_of, object_path, split_of
 
 CONFIG = BuildConfig(category="chair", level="3", count=10, views=2, seed=5)
 
@@ -185,3 +185,21 @@ def test_stretched_build_changes_proportions_not_the_labels(tmp_path):
     assert build(plain, tmp_path / "plain", progress=False)["objects_built"] == 0
     with pytest.raises(ValueError, match="stretch: 1.0 there, 2.0 asked"):
         build(wide, tmp_path / "plain", progress=False)
+
+
+def test_one_material_build_changes_the_colours_not_the_labels(tmp_path):
+    """--materials one: the same views (camera, backdrop, light) with every part in one material; mixed draws
+    each object's mode from its own seed."""
+    coloured = BuildConfig("table", "3", 1, 1, 5)
+    one = BuildConfig("table", "3", 1, 1, 5, materials="one")
+    build(coloured, tmp_path / "coloured", progress=False)
+    build(one, tmp_path / "one", progress=False)
+    a, b = (load_object(object_path(tmp_path / name, coloured, 0)) for name in ("coloured", "one"))
+    assert not np.array_equal(a["images"], b["images"])
+    np.testing.assert_array_equal(a["part_labels"], b["part_labels"])
+    np.testing.assert_array_equal(a["pose_translation_norm"], b["pose_translation_norm"])
+    background = a["part_labels"][0] < 0
+    np.testing.assert_array_equal(a["images"][0][background], b["images"][0][background])
+    mixed = BuildConfig("table", "3", 40, 1, 5, materials="mixed")
+    drawn = [materials_of(mixed, i) for i in range(40)]
+    assert drawn == [materials_of(mixed, i) for i in range(40)] and set(drawn) == {"parts", "one", "few"}

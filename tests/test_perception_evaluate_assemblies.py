@@ -135,3 +135,27 @@ def test_an_unreadable_object_is_reported_and_the_rest_evaluated(checkpoint, fol
     assert figures["objects"] == 2 and len(figures["per_object"]) == 2
     assert [u["name"] for u in figures["unreadable"]] == ["broken_0"] and "assembly.json" in figures["unreadable"][0][
         "error"]
+
+
+def test_the_solver_and_one_material_pictures_are_reported(checkpoint, folder, tmp_path):
+    """--solver adds the ablation (network, + repair, + solver, + solver and repair) under after_solver, each with
+    its Part Accuracy and right-object rate, and per object part_accuracy_solved; --materials one renders the
+    same views with one shared material and says so in the JSON."""
+    report = tmp_path / "eval.json"
+    result = subprocess.run(
+        [sys.executable, "-m", "perception.evaluate", "--assemblies", str(folder), "--seed", "4", "--solver",
+         "--materials", "one", "--checkpoint", str(checkpoint), "--json", str(report), "--no-progress"],
+        capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert "picture solver" in result.stdout
+    figures = json.loads(report.read_text())
+    assert figures["materials"] == "one"
+    solver = figures["after_solver"]
+    assert solver["views"] == 2 and set(solver["stages"]) == {"network", "repair", "solver", "solver_repair"}
+    assert solver["stages"]["network"]["part_accuracy"] == pytest.approx(figures["part_accuracy"])
+    assert solver["stages"]["repair"]["part_accuracy"] == pytest.approx(figures["after_repair"]["part_accuracy"])
+    assert solver["part_accuracy"] == solver["stages"]["solver_repair"]["part_accuracy"]
+    objects = figures["per_object"]
+    right = np.mean([o["part_accuracy_solved"] == 1.0 for o in objects])
+    assert solver["right_object_rate"] == pytest.approx(right)
+    assert all(0.0 <= o["part_accuracy_solved"] <= 1.0 and o["solver"]["seconds"] > 0 for o in objects)

@@ -7,6 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from cell.render import MATERIALS
 from perception.dataset.build import BuildConfig, build
 
 
@@ -24,6 +25,9 @@ def main(argv: list[str] | None = None) -> int:
     b.add_argument("--renderer", choices=["tiny", "egl", "auto"], default="tiny")
     b.add_argument("--stretch", type=float, default=1.0, help="scale each object by a random factor in "
                    "[1/STRETCH, STRETCH] along each axis before rendering (1: the generator's proportions)")
+    b.add_argument("--materials", choices=[*MATERIALS, "mixed"], default="parts",
+                   help="parts: a colour per part; one: one shared material; few: two or three; mixed: each object "
+                   "one of these (half with a colour per part)")
     s = commands.add_parser("slim", help="a training-only copy: the arrays training reads, each part cloud cut to "
                             "its first --points points, quantised to int8 (to ship a dataset to a GPU machine)")
     s.add_argument("source", type=Path, help="a folder made by build")
@@ -40,7 +44,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--{name} must be at least 1, got {getattr(args, name)}")
     if not args.stretch >= 1.0 or args.stretch == float("inf"):
         parser.error(f"--stretch must be a finite number of at least 1, got {args.stretch}")
-    config = BuildConfig(args.category, args.level, args.count, args.views, args.seed, args.renderer, args.stretch)
+    config = BuildConfig(args.category, args.level, args.count, args.views, args.seed, args.renderer, args.stretch,
+                         args.materials)
     try:
         stats = build(config, args.out, workers=args.workers)
     except ValueError as exc:

@@ -11,6 +11,10 @@ an interrupted build resumes where it stopped.
 (log-uniform in [1/stretch, stretch], from ``default_rng([seed, i, 2])``; :func:`planning.assembly.stretched`):
 proportions the generators do not draw (long low units, tall narrow shelves), for networks that should not read
 the category's usual proportions (the elevation head).
+
+``materials``: how the parts are coloured (:data:`cell.render.MATERIALS`: a colour per part, the default; one
+shared material; two or three), or ``mixed`` (:func:`materials_of`), so that a network trained on it does not lean
+on each part having its own colour, which a photo of a wooden chair does not give.
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ class BuildConfig:
     seed: int
     renderer: str = "tiny"
     stretch: float = 1.0  # largest per-axis scale factor (1: the generator's proportions)
+    materials: str = "parts"  # cell.render.MATERIALS, or "mixed": each object's drawn by materials_of
 
 
 def split_of(index: int) -> str:
@@ -55,6 +60,15 @@ def object_path(out: Path, config: BuildConfig, index: int) -> Path:
     return out / split_of(index) / f"{object_name(config, index)}.npz"
 
 
+def materials_of(config: BuildConfig, index: int) -> str:
+    """How object ``index``'s parts are coloured (:data:`cell.render.MATERIALS`): ``config.materials``, or for
+    ``mixed`` one of them drawn from ``default_rng([seed, index, 3])``, a colour per part for half the objects and
+    one or a few shared materials for a quarter each."""
+    if config.materials != "mixed":
+        return config.materials
+    return str(np.random.default_rng([config.seed, index, 3]).choice(["parts", "parts", "one", "few"]))
+
+
 def build_object(config: BuildConfig, index: int) -> dict:
     """Generate, normalise and render object ``index``; returns its arrays."""
     from perception.synth import generate
@@ -65,7 +79,7 @@ def build_object(config: BuildConfig, index: int) -> dict:
         span = np.log(config.stretch)
         assembly = stretched(assembly, np.exp(np.random.default_rng([config.seed, index, 2]).uniform(-span, span, 3)))
     sample = object_sample(assembly, config.views, np.random.default_rng([config.seed, index, 1]),
-                           renderer=config.renderer)
+                           renderer=config.renderer, materials=materials_of(config, index))
     sample["object_name"] = np.array(assembly.name)
     return sample
 

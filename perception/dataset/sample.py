@@ -39,8 +39,10 @@ def _poses_to_arrays(poses) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([p.position for p in poses]), np.stack([p.quat_wxyz for p in poses])
 
 
-def object_sample(assembly: Assembly, views: int, rng: np.random.Generator, renderer: str = "tiny") -> dict:
-    """Normalise the parts of ``assembly`` and render ``views`` random views. Deterministic given ``rng``."""
+def object_sample(assembly: Assembly, views: int, rng: np.random.Generator, renderer: str = "tiny",
+                  materials: str = "parts") -> dict:
+    """Normalise the parts of ``assembly`` and render ``views`` random views, its parts coloured as ``materials``
+    says (:meth:`cell.render.Appearance.sample`). Deterministic given ``rng``."""
     parts = normalize_parts([p.mesh for p in assembly.parts])
     classes = equivalence_classes(parts.points_norm, parts.extents_norm)
     sample: dict[str, np.ndarray] = {
@@ -64,7 +66,7 @@ def object_sample(assembly: Assembly, views: int, rng: np.random.Generator, rend
         "camera_from_assembly_quat_wxyz", "centre_camera_m", "pose_quat_wxyz", "pose_translation_norm")}
     with AssemblyRenderer(assembly, renderer=renderer) as scene:
         for _ in range(views):
-            view = scene.render(sample_camera(rng, bounds), Appearance.sample(rng, len(assembly.parts)))
+            view = scene.render(sample_camera(rng, bounds), Appearance.sample(rng, len(assembly.parts), materials))
             centre_camera_m = view.camera_from_assembly.apply(centre_assembly_m)
             targets = [
                 camera_from_canonical_norm(cam_from_part, canon, centre_camera_m, parts.scale_per_m)
