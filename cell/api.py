@@ -209,7 +209,7 @@ def run_checked(parts: Path, image, poses, scene, out: Path | None, masses, opti
         check_out(out)
     notes: list[str] = []
     scene_config = scene if isinstance(scene, Scene) else load_scene(scene)
-    loaded = load_parts(parts, options.units, notes, options.sheet_thickness_mm / 1000.0)
+    loaded = load_parts(parts, options.units, notes, options.sheet_thickness_mm / 1000.0, poses)
     picture = load_image(image, options.pad, notes) if image is not None else None
     given = load_poses(poses, loaded.names) if poses is not None else None
     given_density = load_masses(masses, loaded) if masses is not None else {}

@@ -18,7 +18,16 @@ import numpy as np
 import trimesh
 
 from cell.errors import BadInput, BadMasses, BadParts, BadPicture, BadPoses
-from planning.assembly import ASSEMBLY_FILE, MAX_PARTS, UNIT_TO_METRES, AssemblyError, load_mesh, read_poses, solid_mesh
+from planning.assembly import (
+    ASSEMBLY_FILE,
+    MAX_PARTS,
+    UNIT_TO_METRES,
+    AssemblyError,
+    load_mesh,
+    outward_directions,
+    read_poses,
+    solid_mesh,
+)
 from planning.mesh_intake import DEFAULT_SHEET_THICKNESS_M
 from planning.pose import Pose
 
@@ -48,9 +57,11 @@ class Parts:
 
 
 def load_parts(folder: str | Path, units: str = "m", notes: list[str] | None = None,
-               sheet_thickness_m: float = DEFAULT_SHEET_THICKNESS_M) -> Parts:
+               sheet_thickness_m: float = DEFAULT_SHEET_THICKNESS_M,
+               poses: str | Path | Mapping[str, Pose] | None = None) -> Parts:
     """Every mesh file of ``folder`` (one part each, named after the file), in metres, each turned into the part's
-    solid by :mod:`planning.mesh_intake` (one-surface boards ``sheet_thickness_m`` thick, behind the drawn face).
+    solid by :mod:`planning.mesh_intake`: one-surface boards grow ``sheet_thickness_m`` thick away from the
+    assembly's centre where the target ``poses`` are given (:func:`load_poses`), else behind the drawn face.
     Companion files of the meshes (:data:`COMPANION_SUFFIXES`: ``.mtl`` materials, textures) are skipped, with a
     note."""
     folder = Path(folder)
@@ -81,10 +92,14 @@ def load_parts(folder: str | Path, units: str = "m", notes: list[str] | None = N
         except AssemblyError as exc:
             raise BadParts(str(exc)) from exc
     _check_size(folder, names, meshes, units)  # on the meshes as given: a unit mistake is named as one
+    outwards = [None] * len(meshes)
+    if poses is not None:
+        given = load_poses(poses, names)
+        outwards = outward_directions(meshes, [given[name] for name in names])
     solids, intake = [], {}
-    for name, path, mesh in zip(names, files, meshes):
+    for name, path, mesh, outward in zip(names, files, meshes, outwards):
         try:
-            solid, intake[name] = solid_mesh(mesh, f"part {name!r} ({path})", sheet_thickness_m)
+            solid, intake[name] = solid_mesh(mesh, f"part {name!r} ({path})", sheet_thickness_m, outward)
         except AssemblyError as exc:
             raise BadParts(str(exc)) from exc
         solids.append(solid)

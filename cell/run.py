@@ -55,7 +55,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--masses", metavar="FILE_OR_JSON", help=MASSES_HELP)
     parser.add_argument("--sheet-thickness", type=float, default=3.0, metavar="MM",
                         help="thickness given to a part drawn as one surface (a board without thickness), grown "
-                        "behind its drawn face (default 3 mm, a hardboard back panel)")
+                        "away from the assembly's centre with --poses, else behind its drawn face (default 3 mm, a "
+                        "hardboard back panel)")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="seconds of kitting and motion planning per build (standing, then upside down) before "
                         "the planner stops trying other placements of the jig (default 300)")

@@ -138,6 +138,10 @@ def format_extras(figures: dict) -> str:
                      f"pair equivalent parts in {crossing['deepest_pair_equivalent']:.3f} of those; PA (mean over "
                      f"views) {crossing['part_accuracy_crossing']:.3f} there, {crossing['part_accuracy_other']:.3f} in "
                      "the others")
+    if "right_object_rate" in figures:
+        repaired = figures.get("after_repair", {}).get("right_object_rate")
+        lines.append(f"right objects (every part passes PA): {figures['right_object_rate']:.3f} of the views"
+                     + (f", {repaired:.3f} after repair" if repaired is not None else ""))
     lines.append(f"up-axis error (deg): mean {up['mean']:.2f}, median {up['median']:.2f}, p95 {up['p95']:.2f}, "
                  f"max {up['max']:.2f}; within 5 deg: {up['within_5_deg']:.3f}")
     lines.append(f"depth of the object centre, error (m): mean {figures['depth_error_m']['mean']:.4f}, "

@@ -132,6 +132,7 @@ class Accumulator:
             if o.after is not None:
                 after.add(o.after)
         figures = before.summary()
+        figures["right_object_rate"] = right_object_rate([o.before for o in self.outcomes])
         up = np.array([o.up_error_deg for o in self.outcomes])
         seconds = np.array([o.inference_s for o in self.outcomes])
 
@@ -144,6 +145,8 @@ class Accumulator:
             "truth_grounded", "predicted_grounded", "repaired_grounded")}
         if after.results:
             figures["after_repair"] = after.summary()
+            figures["after_repair"]["right_object_rate"] = right_object_rate([o.after for o in self.outcomes
+                                                                              if o.after is not None])
             figures["deepest_penetration_m"] = {
                 key: _stats(np.array([o.penetration_m[key] for o in self.outcomes if o.penetration_m]))
                 for key in ("before", "after")}
@@ -273,7 +276,8 @@ def evaluate_view(model: nn.Module, view: Rendering, assembly: Assembly, parts: 
 def _solve_view(outcome: ViewOutcome, view: Rendering, parts: PreparedParts, convex: list[ConvexPart],
                 placement: Placement, mask: np.ndarray, settings: SolverSettings, repair_settings: RepairSettings,
                 truth: tuple) -> None:
-    """The solver's figures for one view, into ``outcome``: PA after it and after it and the repair."""
+    """The solver's figures for one view, into ``outcome``: Part Accuracy after the solver, and after the solver
+    and the repair."""
     points, gt_quat, gt_trans, classes = truth
     result = solve([c.piece_vertices for c in convex], parts.classes, placement.assembly_from_part,
                    placement.camera_from_assembly, mask, settings)

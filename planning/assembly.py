@@ -137,6 +137,16 @@ def load_mesh(path: Path, where: str, scale_to_metres: float = 1.0) -> trimesh.T
     return loaded
 
 
+def outward_directions(meshes: list[trimesh.Trimesh], assembly_from_part: list[Pose]) -> list[np.ndarray]:
+    """Per part, the direction (3,) in its own frame from the assembly's centre (the middle of its bounds) to the
+    part's centre: the side a one-surface board grows to (:func:`solid_mesh`), so that it keeps the face its
+    neighbours touch."""
+    corners = np.concatenate([pose.apply(m.bounds) for m, pose in zip(meshes, assembly_from_part)])
+    centre = 0.5 * (corners.min(axis=0) + corners.max(axis=0))
+    return [pose.rotation.T @ (pose.apply(m.bounds.mean(axis=0)) - centre)
+            for m, pose in zip(meshes, assembly_from_part)]
+
+
 def solid_mesh(mesh: trimesh.Trimesh, where: str, sheet_thickness_m: float = DEFAULT_SHEET_THICKNESS_M,
                outward: np.ndarray | None = None):
     """The solid of a part mesh (metres, part frame) through :func:`planning.mesh_intake.intake_mesh`, and the
@@ -234,12 +244,9 @@ def read_assembly(folder: str | os.PathLike, sheet_thickness_m: float = DEFAULT_
         pose = _parse_pose(entry.get("pose"), where)
         mesh = load_mesh(folder / entry["mesh"], where, scale)
         parts.append(AssemblyPart(entry["name"], mesh, Pose(pose.position * scale, pose.quat_wxyz), entry["mesh"]))
-    # the assembly's centre (the middle of its bounds), for the side each one-surface board grows to
-    centre = Assembly("", parts).bounds().mean(axis=0)
     records = {}
-    for part in parts:
-        pose = part.assembly_from_part
-        outward = pose.rotation.T @ (pose.apply(part.mesh.bounds.mean(axis=0)) - centre)
+    outwards = outward_directions([p.mesh for p in parts], [p.assembly_from_part for p in parts])
+    for part, outward in zip(parts, outwards):
         part.mesh, records[part.name] = solid_mesh(part.mesh, f"{json_path}: part {part.name!r}",
                                                    sheet_thickness_m, outward)
     metadata = {k: v for k, v in data.items() if k not in ("name", "parts", "units", "up")}

@@ -105,6 +105,10 @@ def test_the_assembly_reader_repairs_and_records(tmp_path):
     back = assembly.part("back").mesh
     assert back.bounds[:, 1] == pytest.approx([0.0, 0.003], abs=1e-9)  # away from the box, not into it
     assert read_assembly(folder, sheet_thickness_m=0.006).part("back").mesh.bounds[1, 1] == pytest.approx(0.006)
+    from cell.inputs import load_parts  # cell.run --parts --poses: the same side, from the poses file
+
+    parts = load_parts(folder / "parts", poses=folder)
+    assert parts.meshes[parts.names.index("back")].bounds[:, 1] == pytest.approx([0.0, 0.003], abs=1e-9)
     (folder / "parts" / "back.obj").write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")
     with pytest.raises(AssemblyError, match=r"part 'back'.*degenerate"):
         read_assembly(folder)

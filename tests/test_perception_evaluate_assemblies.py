@@ -50,6 +50,9 @@ def test_cli_writes_part_accuracy_and_the_extra_figures(checkpoint, folder, tmp_
     assert 0.0 <= figures["up_error_deg"]["mean"] <= 90.0 and figures["inference_s"]["mean"] > 0
     assert figures["peak_memory_mb"] > 0 and len(figures["per_object"]) == 4
     assert "parts still crossing after repair" in result.stdout
+    assert "right objects (every part passes PA)" in result.stdout
+    right = np.mean([o["part_accuracy"] == 1.0 for o in figures["per_object"]])
+    assert figures["right_object_rate"] == pytest.approx(right)
     # the share of crossing views is the per-view deepest overlaps over the threshold, counted
     overlaps = [o["deepest_overlap_after"] for o in figures["per_object"]]
     crossing = [o for o in overlaps if o is not None and o["depth_m"] > figures["crossing_after_repair"]["threshold_m"]]
