@@ -2,6 +2,7 @@
 
     python benchmarks/picture_solver.py --out out/solver_bench --count 40 [--materials parts one]
         [--variants default "no relocations"] [--categories chair table cabinet] [--furniture ../shared/furniture]
+    python benchmarks/picture_solver.py --out out/solver_bench --categories --furniture ../shared/furniture
 
 Test sets: ``--count`` fresh level-3 procedural objects per category, drawn as ``python -m perception.synth --seed
 424242`` draws them (never used for training; the same sets as ``benchmarks/picture_agreement.py``), written once
@@ -63,7 +64,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("out/solver_bench"))
     parser.add_argument("--count", type=int, default=40, help="procedural objects per category")
-    parser.add_argument("--categories", nargs="+", choices=CATEGORIES, default=list(CATEGORIES))
+    parser.add_argument("--categories", nargs="*", choices=CATEGORIES, default=list(CATEGORIES),
+                        help="procedural sets (none: only --furniture)")
     parser.add_argument("--furniture", type=Path, help="folder of real assembly folders (../shared/furniture)")
     parser.add_argument("--materials", nargs="+", choices=MATERIALS, default=["parts"])
     parser.add_argument("--variants", nargs="+", choices=sorted(VARIANTS), default=["default"])

@@ -8,14 +8,19 @@ they agree with it, before the pose repair makes them touch:
 
 - **Scorer** (:class:`SilhouetteScorer`): each part drawn with the picture's camera as the union of its convex
   pieces' projected outlines (one polygon per piece: cheap enough for thousands of candidates per second on one
-  core), the pieces' silhouettes summed into one coverage image; the score is the silhouette IoU with the object
-  (after the drawing's fit for the camera distance, :func:`perception.agreement.fit_silhouette`), plus, per
-  part, the share of its drawn pixels on the object, less a penalty for parts below the floor and for moving away
-  from the network's placement.
-- **Search** (:func:`solve`): from the network's assembly, discrete moves, each kept only where the score rises:
-  the parts of one equivalence class spread or drawn together about their centre in the floor plane (legs), and
-  every part moved along the assembly's axes in halving steps. Orientation is left to the network, which gets it
-  right far more often than position.
+  core), the parts' silhouettes summed into one coverage image; the score is the silhouette IoU with the object
+  (after the drawing's fit for the camera distance, :func:`perception.agreement.fit_silhouette`), plus the mean
+  share of each part's drawn pixels on the object, less penalties for parts below the floor and for moving or
+  turning away from the network's placement.
+- **Search** (:func:`solve`): from the network's assembly, discrete moves, each kept only where the score rises,
+  and only for parts drawn partly off the object: quarter and half turns about the assembly's axes; the members of
+  an equivalence class spread or drawn together about their centre in the floor plane (legs); each part moved to
+  where its outline best fills object pixels no other part covers (:func:`_relocations`); then steps in the
+  picture's plane at the part's depth, halving.
+
+On the procedural test sets the search raises its score but lowers Part Accuracy (``benchmarks/
+picture_solver.py``): one picture does not fix a part's depth, and the silhouette rewards whichever part fills a
+hole. ``cell.run`` does not use it; ``python -m perception.evaluate --assemblies DIR --solver`` measures it.
 
 Frames: the upright assembly frame (+z up, floor at z = 0, metres) for the moves; the picture's OpenCV camera
 frame for drawing. Deterministic (no random numbers).
@@ -105,7 +110,6 @@ class SilhouetteScorer:
         self.intrinsics = picture_intrinsics(self.size) if intrinsics is None else intrinsics
         self.settings = settings
         self.scale, self.shift, self.centre = 1.0, np.zeros(2), np.zeros(2)
-        self.object_area = max(int(np.count_nonzero(self.object_px)), 1)
 
     def outlines_px(self, k: int, assembly_from_part: Pose) -> list[np.ndarray]:
         """Part ``k``'s pieces' outlines, each (M, 2) pixels (u, v) before the fit, nearest the camera first."""
