@@ -38,9 +38,11 @@ EDGE_THRESHOLDS = (0.0, 0.7, 0.8, 0.85, 0.9)
 CATEGORIES = ("chair", "table", "cabinet")
 
 
-def build_sets(out: Path, count: int) -> dict[str, Path]:
+def build_sets(out: Path, count: int, categories=CATEGORIES) -> dict[str, Path]:
+    """``count`` fresh level-3 objects per category (``perception.synth --seed 424242``, never used for training),
+    written once under ``out/sets/``: label -> folder."""
     sets = {}
-    for category in CATEGORIES:
+    for category in categories:
         folder = out / "sets" / f"{category}_3"
         if not folder.is_dir() or len(list(folder.iterdir())) < count:
             subprocess.run([sys.executable, "-m", "perception.synth", "--category", category, "--level", "3",

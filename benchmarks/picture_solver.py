@@ -26,6 +26,7 @@ from pathlib import Path
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.picture_agreement import CATEGORIES, build_sets  # noqa: E402
 from cell.render import MATERIALS  # noqa: E402
 from perception.evaluate_assemblies import evaluate_assemblies  # noqa: E402
 from perception.solver import SolverSettings  # noqa: E402
@@ -42,22 +43,7 @@ VARIANTS = {
     "every part movable": {"movable_below": 1.01},
     "no drawing fit": {"fit_drawing": False},
 }
-CATEGORIES = ("chair", "table", "cabinet")
 STAGES = ("network", "repair", "solver", "solver_repair")
-
-
-def build_sets(out: Path, count: int, categories) -> dict[str, Path]:
-    import subprocess
-
-    sets = {}
-    for category in categories:
-        folder = out / "sets" / f"{category}_3"
-        if not folder.is_dir() or len(list(folder.iterdir())) < count:
-            subprocess.run([sys.executable, "-m", "perception.synth", "--category", category, "--level", "3",
-                            "--count", str(count), "--seed", "424242", "--out", str(folder), "--overwrite"],
-                           check=True, capture_output=True)
-        sets[f"{category}s"] = folder
-    return sets
 
 
 def main() -> int:
