@@ -141,8 +141,10 @@ def outward_directions(meshes: list[trimesh.Trimesh], assembly_from_part: list[P
     """Per part, the direction (3,) in its own frame from the assembly's centre (the middle of its bounds) to the
     part's centre: the side a one-surface board grows to (:func:`solid_mesh`), so that it keeps the face its
     neighbours touch."""
-    corners = np.concatenate([pose.apply(m.bounds) for m, pose in zip(meshes, assembly_from_part)])
-    centre = 0.5 * (corners.min(axis=0) + corners.max(axis=0))
+    placed = [pose.apply(np.asarray(m.vertices)) for m, pose in zip(meshes, assembly_from_part)]
+    low = np.min([v.min(axis=0) for v in placed], axis=0)
+    high = np.max([v.max(axis=0) for v in placed], axis=0)
+    centre = 0.5 * (low + high)
     return [pose.rotation.T @ (pose.apply(m.bounds.mean(axis=0)) - centre)
             for m, pose in zip(meshes, assembly_from_part)]
 
