@@ -45,7 +45,7 @@ class BuildConfig:
     seed: int
     renderer: str = "tiny"
     stretch: float = 1.0  # largest per-axis scale factor (1: the generator's proportions)
-    materials: str = "parts"  # cell.render.MATERIALS, or "mixed": each object's drawn by materials_of
+    materials: str = "parts"  # one of cell.render.MATERIALS, or "mixed": one of them per object (materials_of)
 
 
 def split_of(index: int) -> str:
