@@ -144,11 +144,15 @@ class SilhouetteScorer:
             draw.polygon([tuple(p) for p in points], fill=1, outline=1)
         return np.asarray(image, dtype=bool)
 
-    def score(self, masks: Sequence[np.ndarray], coverage: np.ndarray, penalty: float) -> tuple[float, float]:
-        """(score, silhouette IoU) of parts drawn as ``masks`` (their sum is ``coverage``), less ``penalty``."""
-        drawn = coverage > 0
-        silhouette = iou(drawn, self.object_px)
-        shares = [np.count_nonzero(m & self.object_px) / max(np.count_nonzero(m), 1) for m in masks]
+    def on_object_share(self, mask: np.ndarray) -> float:
+        """The share of a part's drawn pixels (``mask``) that lie on the object (0 for a part drawn nowhere)."""
+        pixels = np.count_nonzero(mask)
+        return float(np.count_nonzero(mask & self.object_px) / pixels) if pixels else 0.0
+
+    def score(self, shares: Sequence[float], coverage: np.ndarray, penalty: float) -> tuple[float, float]:
+        """(score, silhouette IoU) of parts whose drawings sum to ``coverage``, each with its share on the object
+        (:meth:`on_object_share`), less ``penalty``."""
+        silhouette = iou(coverage > 0, self.object_px)
         return silhouette + self.settings.on_object_weight * float(np.mean(shares)) - penalty, silhouette
 
 
@@ -244,7 +248,8 @@ def solve(piece_vertices: Sequence[Sequence[np.ndarray]], classes: Sequence[int]
         return settings.move_weight * moved + settings.floor_weight * below + settings.turn_weight * quarters
 
     penalties = [penalty_of(k, pose, lowest[k]) for k, pose in enumerate(poses)]
-    best, silhouette_before = scorer.score(masks, coverage, sum(penalties))
+    shares = [scorer.on_object_share(mask) for mask in masks]
+    best, silhouette_before = scorer.score(shares, coverage, sum(penalties))
     score_before, moves = best, 0
 
     def try_moves(changes: dict[int, Pose]) -> bool:
@@ -252,18 +257,19 @@ def solve(piece_vertices: Sequence[Sequence[np.ndarray]], classes: Sequence[int]
         nonlocal best, coverage, moves
         new_masks = {k: scorer.part_mask(k, pose) for k, pose in changes.items()}
         new_coverage = coverage.copy()
-        trial_masks, trial_penalties, new_lowest = list(masks), list(penalties), {}
+        trial_shares, trial_penalties, new_lowest = list(shares), list(penalties), {}
         for k, mask in new_masks.items():
             new_coverage += mask.astype(np.int16) - masks[k].astype(np.int16)
-            trial_masks[k] = mask
+            trial_shares[k] = scorer.on_object_share(mask)
             new_lowest[k] = _lowest_z(scorer.pieces[k], changes[k])
             trial_penalties[k] = penalty_of(k, changes[k], new_lowest[k])
-        value, _ = scorer.score(trial_masks, new_coverage, sum(trial_penalties))
+        value, _ = scorer.score(trial_shares, new_coverage, sum(trial_penalties))
         if value <= best + 1e-6:
             return False
         best, coverage, moves = value, new_coverage, moves + 1
         for k, pose in changes.items():
             poses[k], masks[k], penalties[k], lowest[k] = pose, new_masks[k], trial_penalties[k], new_lowest[k]
+            shares[k] = trial_shares[k]
         return True
 
     def moved(pose: Pose, delta_m: np.ndarray) -> Pose:
@@ -280,8 +286,7 @@ def solve(piece_vertices: Sequence[Sequence[np.ndarray]], classes: Sequence[int]
     def movable(k: int) -> bool:
         """Whether part ``k`` is drawn off the object enough to be moved: a part drawn on the object already is
         where the picture allows it, and moving it to cover pixels of another part's place only trades errors."""
-        pixels = np.count_nonzero(masks[k])
-        return pixels == 0 or np.count_nonzero(masks[k] & scorer.object_px) / pixels < settings.movable_below
+        return not masks[k].any() or shares[k] < settings.movable_below
 
     def out_of_time() -> bool:
         return time.perf_counter() - started > settings.max_seconds
