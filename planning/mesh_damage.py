@@ -15,6 +15,9 @@ the same frame and unit (``process=False``: exactly the faces written here):
   removed;
 - ``split``: cut in two open halves by a plane through the centre, 1 mm apart as two loose pieces, the second
   inside-out.
+
+:data:`AS_EXPORTED` (``as_exported``) combines them per part at the rates counted on 602 parts of 78 real furniture
+models as exported (surface models of retail furniture): see :func:`as_exported`.
 """
 
 from __future__ import annotations
@@ -24,6 +27,11 @@ import trimesh
 
 DAMAGES = ("double_sided", "inside_out", "half_flipped", "holes", "one_surface", "soup", "split")
 HOLE_FRACTION = 0.03
+AS_EXPORTED = "as_exported"
+# per part, the share of the 602 counted parts with each flaw (they overlap: 371 double-sided, 236 open shells,
+# 50 with inconsistent winding, 15 inside-out, 10 boards drawn as one surface; 2 closed volumes)
+EXPORT_RATES = {"double_sided": 371 / 602, "holes": 236 / 602, "half_flipped": 50 / 602, "inside_out": 15 / 602,
+                "one_surface": 10 / 602}
 
 
 def _mesh(vertices: np.ndarray, faces: np.ndarray) -> trimesh.Trimesh:
@@ -120,11 +128,46 @@ def split(mesh: trimesh.Trimesh, seed: int) -> trimesh.Trimesh:
     return _mesh(np.concatenate([v1, v2 - 0.001 * normal]), np.concatenate([f1, f2[:, ::-1] + len(v1)]))
 
 
+def export_flaws(mesh: trimesh.Trimesh, seed: int) -> tuple[str, ...]:
+    """The flaws :func:`as_exported` gives ``mesh`` with ``seed``, in the order it applies them (``unmerged``: each
+    face its own three vertices)."""
+    return tuple(flaw for flaw, _ in _export_draws(mesh, seed))
+
+
+def _export_draws(mesh: trimesh.Trimesh, seed: int) -> list[tuple[str, int]]:
+    rng = np.random.default_rng(seed)
+    drawn = {flaw: rng.random() < rate for flaw, rate in EXPORT_RATES.items()}
+    drawn["unmerged"] = rng.random() < 0.5
+    seeds = dict(zip(EXPORT_RATES, rng.integers(2**31, size=len(EXPORT_RATES)).tolist()))
+    if drawn["one_surface"] and is_board(mesh):
+        return [("one_surface", seeds["one_surface"])]
+    return [(flaw, seeds.get(flaw, 0)) for flaw in ("inside_out", "half_flipped", "double_sided", "holes", "unmerged")
+            if drawn[flaw]]
+
+
+def unmerged(mesh: trimesh.Trimesh, seed: int = 0) -> trimesh.Trimesh:
+    """Every face with its own three vertices, faces and winding as they were."""
+    faces = np.asarray(mesh.faces)
+    vertices = np.asarray(mesh.vertices)[faces.reshape(-1)]
+    return _mesh(vertices, np.arange(len(vertices)).reshape(-1, 3))
+
+
+def as_exported(mesh: trimesh.Trimesh, seed: int) -> trimesh.Trimesh:
+    """``mesh`` with flaws drawn independently at :data:`EXPORT_RATES` (seeded), as one export of a real model has
+    them: a board drawn as one surface (boards only; no other flaw then), else its winding reversed everywhere
+    and on half its faces, every face drawn on both sides, 3% of the faces removed, in that order; and, for half the
+    parts, vertices unmerged. A part drawn without a flaw comes back unchanged (:func:`export_flaws` names them)."""
+    out = mesh
+    for flaw, flaw_seed in _export_draws(mesh, seed):
+        out = globals()[flaw](out, flaw_seed)
+    return out
+
+
 def damaged(mesh: trimesh.Trimesh, damage: str, seed: int = 0) -> trimesh.Trimesh:
-    """``mesh`` broken by ``damage`` (one of :data:`DAMAGES`), seeded."""
-    if damage not in DAMAGES:
-        raise ValueError(f"unknown damage {damage!r}; one of {', '.join(DAMAGES)}")
+    """``mesh`` broken by ``damage`` (one of :data:`DAMAGES`, or :data:`AS_EXPORTED`), seeded."""
+    if damage not in (*DAMAGES, AS_EXPORTED):
+        raise ValueError(f"unknown damage {damage!r}; one of {', '.join((*DAMAGES, AS_EXPORTED))}")
     return globals()[damage](mesh, seed)
 
 
-__all__ = ["DAMAGES", "damaged", "is_board"]
+__all__ = ["AS_EXPORTED", "DAMAGES", "EXPORT_RATES", "damaged", "export_flaws", "is_board"]
