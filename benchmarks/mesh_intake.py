@@ -18,8 +18,8 @@ take seconds each the first time (cached on disk after). ``--build`` also runs `
 each broken object whose repaired solids differ from the intact object's (one that gets byte-identical solids back
 gives the cell the same input as the intact object, and is counted apart): as ``benchmarks/cell_assembly.py`` runs
 them, on ``python -m cell.batch`` (``--workers``; an object too big for the cell scaled by 0.8, then 0.6), about a
-minute each; ``--keep DIR`` keeps the output folders, and a rerun into it skips the finished ones. Prints Markdown
-tables.
+minute each; ``--keep DIR`` keeps the output folders (``DIR/<object>__<damage>_out``) for diagnosis. Prints
+Markdown tables.
 """
 
 from __future__ import annotations
@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--time-budget", type=float, default=10.0, help="sequence search budget per object (s)")
     parser.add_argument("--workers", type=int, default=1, help="--build: objects built side by side")
     parser.add_argument("--scheduler", metavar="ADDRESS", help="--build: on an existing Dask cluster instead")
-    parser.add_argument("--keep", type=Path, help="--build: keep each build's output folder here (resumable)")
+    parser.add_argument("--keep", type=Path, help="--build: keep each build's output folder here")
     args = parser.parse_args(argv)
     folders = sorted(p.parent for p in args.furniture.glob("*/assembly.json"))
     if args.objects:

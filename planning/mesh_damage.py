@@ -13,7 +13,7 @@ the same frame and unit (``process=False``: exactly the faces written here):
   :func:`is_board`);
 - ``soup``: triangle soup: every face with its own three vertices, in random order, half of them reversed, 3%
   removed;
-- ``split``: cut in two open halves by a plane through the centre, 1 mm apart as two loose pieces, the second
+- ``split``: two loose open pieces, a 1 mm slice through the centre missing between them, the second
   inside-out.
 
 :data:`AS_EXPORTED` (``as_exported``) combines them per part at the rates counted on 602 parts of 78 real furniture
@@ -112,20 +112,21 @@ def soup(mesh: trimesh.Trimesh, seed: int) -> trimesh.Trimesh:
 
 
 def split(mesh: trimesh.Trimesh, seed: int) -> trimesh.Trimesh:
-    """Two open halves cut by the plane through the centre of the bounds across the longest extent, 1 mm apart as
-    loose pieces, the second inside-out."""
+    """Two open pieces with a 1 mm gap between them: the slice 1 mm thick through the centre of the bounds across
+    the longest extent removed, the second piece inside-out. Nothing moves, so the pieces still touch what the part
+    touched."""
     axis = int(np.argmax(mesh.extents))
     normal = np.eye(3)[axis]
-    origin = mesh.bounds.mean(axis=0)
-    halves = []
+    centre = mesh.bounds.mean(axis=0)
+    pieces = []
     for sign in (1.0, -1.0):
         vertices, faces = trimesh.intersections.slice_faces_plane(mesh.vertices, mesh.faces, sign * normal,
-                                                                  origin)[:2]
-        half = _mesh(vertices, faces)
-        half.merge_vertices(digits_vertex=7)  # the cut's new vertices, made per triangle, joined again (0.1 um)
-        halves.append((np.asarray(half.vertices), np.asarray(half.faces)))
-    (v1, f1), (v2, f2) = halves
-    return _mesh(np.concatenate([v1, v2 - 0.001 * normal]), np.concatenate([f1, f2[:, ::-1] + len(v1)]))
+                                                                  centre + sign * 0.0005 * normal)[:2]
+        piece = _mesh(vertices, faces)
+        piece.merge_vertices(digits_vertex=7)  # the cut's new vertices, made per triangle, joined again (0.1 um)
+        pieces.append((np.asarray(piece.vertices), np.asarray(piece.faces)))
+    (v1, f1), (v2, f2) = pieces
+    return _mesh(np.concatenate([v1, v2]), np.concatenate([f1, f2[:, ::-1] + len(v1)]))
 
 
 def export_flaws(mesh: trimesh.Trimesh, seed: int) -> tuple[str, ...]:
