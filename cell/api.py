@@ -201,7 +201,7 @@ def run_checked(parts: Path, image, poses, scene, out: Path | None, masses, opti
                 console: Console) -> AssemblyResult:
     """Read and check every input, then run the stages (:class:`cell.pipeline.Pipeline`) and write ``out``
     (``None``: nothing). ``options`` must have passed :func:`check_options`."""
-    from cell.inputs import load_image, load_masses, load_parts, load_poses
+    from cell.inputs import load_image, load_masses, load_parts
     from cell.scene import Scene, load_scene
     from planning.payload import DEFAULT_DENSITY_KG_M3
 
@@ -211,7 +211,7 @@ def run_checked(parts: Path, image, poses, scene, out: Path | None, masses, opti
     scene_config = scene if isinstance(scene, Scene) else load_scene(scene)
     loaded = load_parts(parts, options.units, notes, options.sheet_thickness_mm / 1000.0, poses)
     picture = load_image(image, options.pad, notes) if image is not None else None
-    given = load_poses(poses, loaded.names) if poses is not None else None
+    given = loaded.poses
     given_density = load_masses(masses, loaded) if masses is not None else {}
     if picture is not None and given is None:
         check_checkpoint(options.checkpoint)

@@ -54,6 +54,7 @@ class Parts:
     files: list[Path]
     skipped: list[Path] = field(default_factory=list)  # companion files (materials, textures), not parts
     mesh_intake: dict[str, dict] = field(default_factory=dict)  # part name: what the intake did to its mesh
+    poses: dict[str, Pose] | None = None  # the target poses given with them (load_poses), read once
 
 
 def load_parts(folder: str | Path, units: str = "m", notes: list[str] | None = None,
@@ -63,7 +64,7 @@ def load_parts(folder: str | Path, units: str = "m", notes: list[str] | None = N
     solid by :mod:`planning.mesh_intake`: one-surface boards grow ``sheet_thickness_m`` thick away from the
     assembly's centre where the target ``poses`` are given (:func:`load_poses`), else behind the drawn face.
     Companion files of the meshes (:data:`COMPANION_SUFFIXES`: ``.mtl`` materials, textures) are skipped, with a
-    note."""
+    note. The poses read come back in ``Parts.poses``."""
     folder = Path(folder)
     if not folder.exists():
         raise BadParts(f"{folder}: parts folder does not exist")
@@ -92,7 +93,7 @@ def load_parts(folder: str | Path, units: str = "m", notes: list[str] | None = N
         except AssemblyError as exc:
             raise BadParts(str(exc)) from exc
     _check_size(folder, names, meshes, units)  # on the meshes as given: a unit mistake is named as one
-    outwards = [None] * len(meshes)
+    outwards, given = [None] * len(meshes), None
     if poses is not None:
         given = load_poses(poses, names)
         outwards = outward_directions(meshes, [given[name] for name in names])
@@ -106,7 +107,7 @@ def load_parts(folder: str | Path, units: str = "m", notes: list[str] | None = N
     if skipped and notes is not None:
         shown = ", ".join(p.name for p in skipped[:6]) + (f" and {len(skipped) - 6} more" if len(skipped) > 6 else "")
         notes.append(f"{folder}: skipped {len(skipped)} file(s) that are not parts (materials, textures): {shown}")
-    return Parts(names, solids, files, skipped, intake)
+    return Parts(names, solids, files, skipped, intake, given)
 
 
 def _check_size(folder: Path, names: list[str], meshes: list[trimesh.Trimesh], units: str) -> None:
