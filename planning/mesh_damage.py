@@ -157,7 +157,8 @@ def as_exported(mesh: trimesh.Trimesh, seed: int) -> trimesh.Trimesh:
     """``mesh`` with flaws drawn independently at :data:`EXPORT_RATES` (seeded), as one export of a real model has
     them: a board drawn as one surface (boards only; no other flaw then), else its winding reversed everywhere
     and on half its faces, every face drawn on both sides, 3% of the faces removed, in that order; and, for half the
-    parts, vertices unmerged. A part drawn without a flaw comes back unchanged (:func:`export_flaws` names them)."""
+    parts, vertices unmerged (a rate assumed, not counted: exports split vertices at normal and texture seams). A
+    part drawn without a flaw comes back unchanged (:func:`export_flaws` names them)."""
     out = mesh
     for flaw, flaw_seed in _export_draws(mesh, seed):
         out = globals()[flaw](out, flaw_seed)
