@@ -169,7 +169,8 @@ def main(argv: list[str] | None = None) -> int:
                     to_build.append((damage, Assembly(f"{folder.name}__{damage}", broken.parts,
                                                       dict(broken.metadata))))
             print(f"{folder.name}: done", flush=True)
-        if to_build:
+        if to_build:  # damage by damage, in the order given: an interrupted run has whole rows
+            to_build.sort(key=lambda item: args.damages.index(item[0]))
             build(to_build, rows, args, Path(tmp))
     print("\n| damage | parts | median abs. volume error | p95 | max | within 5% | one-surface boards (within 5% of "
           "area x 3 mm) | intake median s/part | max s/part |" + (" sequenced |" if args.sequence else "")
