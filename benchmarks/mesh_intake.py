@@ -89,9 +89,12 @@ def build(objects: list[tuple[str, Assembly]], rows: dict, args, work: Path) -> 
               f"{record['wall_s'] or 0:.0f} s {failure[:160]}", flush=True)
 
     started = time.perf_counter()
-    with Engine(args.workers, args.scheduler) as engine:
-        print(f"building {len(objects)} broken objects on {engine.description}", flush=True)
-        run_scaled(objects, engine, work, args.keep, on_record)
+    try:
+        with Engine(args.workers, args.scheduler) as engine:
+            print(f"building {len(objects)} broken objects on {engine.description}", flush=True)
+            run_scaled(objects, engine, work, args.keep, on_record)
+    except KeyboardInterrupt:  # Ctrl-C: the tables count the builds that ended
+        print("interrupted: the builds that ended are counted below", flush=True)
     print(f"builds: {time.perf_counter() - started:.0f} s wall clock", flush=True)
 
 
