@@ -52,6 +52,26 @@ def build_sets(out: Path, count: int, categories=CATEGORIES) -> dict[str, Path]:
     return sets
 
 
+def add_set_arguments(parser: argparse.ArgumentParser, out: str) -> None:
+    """The test-set options the picture benchmarks share: ``--out`` (default ``out``), ``--count``,
+    ``--categories`` and ``--furniture`` (:func:`test_sets` reads them)."""
+    parser.add_argument("--out", type=Path, default=Path(out))
+    parser.add_argument("--count", type=int, default=40, help="procedural objects per category")
+    parser.add_argument("--categories", nargs="*", choices=CATEGORIES, default=list(CATEGORIES),
+                        help="procedural sets (none: only --furniture)")
+    parser.add_argument("--furniture", type=Path, help="folder of real assembly folders (../shared/furniture)")
+
+
+def test_sets(args: argparse.Namespace) -> dict[str, Path]:
+    """The sets :func:`add_set_arguments`' options name, label -> folder: the procedural ones built once under
+    ``--out`` (:func:`build_sets`), then the real furniture where given."""
+    args.out.mkdir(parents=True, exist_ok=True)
+    sets = build_sets(args.out, args.count, args.categories)
+    if args.furniture is not None:
+        sets["real furniture"] = args.furniture
+    return sets
+
+
 def rows_of(figures: dict) -> list[dict]:
     rows = []
     for o in figures["per_object"]:
@@ -90,15 +110,10 @@ def table(name: str, rows: list[dict]) -> list[str]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=Path("out/agreement_bench"))
-    parser.add_argument("--count", type=int, default=40, help="procedural objects per category")
-    parser.add_argument("--furniture", type=Path, help="folder of real assembly folders (../shared/furniture)")
+    add_set_arguments(parser, "out/agreement_bench")
     parser.add_argument("--seed", type=int, default=0, help="views and part orders")
     args = parser.parse_args()
-    args.out.mkdir(parents=True, exist_ok=True)
-    sets = build_sets(args.out, args.count)
-    if args.furniture is not None:
-        sets["real furniture"] = args.furniture
+    sets = test_sets(args)
     model, _, _, checkpoint = load_for_inference(None)
     results, lines = {}, [f"machine: {platform.machine()}, weights: {checkpoint.name}"]
     for name, folder in sets.items():

@@ -37,7 +37,7 @@ import numpy as np
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.picture_agreement import CATEGORIES, build_sets  # noqa: E402
+from benchmarks.picture_agreement import add_set_arguments, test_sets  # noqa: E402
 from cell.render import Appearance, AssemblyRenderer, sample_camera  # noqa: E402
 from perception.agreement import object_mask  # noqa: E402
 from perception.elevation import image_elevation_deg  # noqa: E402
@@ -154,17 +154,10 @@ def _alternatives(hypotheses, best: int, pieces, mask, scorer_at) -> list[Pose]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=Path("out/hypotheses_bench"))
-    parser.add_argument("--count", type=int, default=40, help="procedural objects per category")
+    add_set_arguments(parser, "out/hypotheses_bench")
     parser.add_argument("--orders", type=int, default=5, help="hypotheses per object: orders of the parts")
-    parser.add_argument("--categories", nargs="*", choices=CATEGORIES, default=list(CATEGORIES),
-                        help="procedural sets (none: only --furniture)")
-    parser.add_argument("--furniture", type=Path, help="folder of real assembly folders (../shared/furniture)")
     args = parser.parse_args()
-    args.out.mkdir(parents=True, exist_ok=True)
-    sets = build_sets(args.out, args.count, args.categories)
-    if args.furniture is not None:
-        sets["real furniture"] = args.furniture
+    sets = test_sets(args)
     model, _, _, checkpoint = load_for_inference(None)
     figures_path = args.out / "hypotheses.json"
     results = json.loads(figures_path.read_text()) if figures_path.is_file() else {}

@@ -26,7 +26,7 @@ from pathlib import Path
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.picture_agreement import CATEGORIES, build_sets  # noqa: E402
+from benchmarks.picture_agreement import add_set_arguments, test_sets  # noqa: E402
 from cell.render import MATERIALS  # noqa: E402
 from perception.evaluate_assemblies import evaluate_assemblies  # noqa: E402
 from perception.solver import SolverSettings  # noqa: E402
@@ -48,19 +48,12 @@ STAGES = ("network", "repair", "solver", "solver_repair")
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=Path("out/solver_bench"))
-    parser.add_argument("--count", type=int, default=40, help="procedural objects per category")
-    parser.add_argument("--categories", nargs="*", choices=CATEGORIES, default=list(CATEGORIES),
-                        help="procedural sets (none: only --furniture)")
-    parser.add_argument("--furniture", type=Path, help="folder of real assembly folders (../shared/furniture)")
+    add_set_arguments(parser, "out/solver_bench")
     parser.add_argument("--materials", nargs="+", choices=MATERIALS, default=["parts"])
     parser.add_argument("--variants", nargs="+", choices=sorted(VARIANTS), default=["default"])
     parser.add_argument("--seed", type=int, default=0, help="views and part orders")
     args = parser.parse_args()
-    args.out.mkdir(parents=True, exist_ok=True)
-    sets = build_sets(args.out, args.count, args.categories)
-    if args.furniture is not None:
-        sets["real furniture"] = args.furniture
+    sets = test_sets(args)
     model, _, _, checkpoint = load_for_inference(None)
     figures_path = args.out / "solver.json"
     results = json.loads(figures_path.read_text()) if figures_path.is_file() else {}
