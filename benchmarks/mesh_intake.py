@@ -38,7 +38,14 @@ import numpy as np
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from planning.assembly import Assembly, AssemblyPart, load_mesh, read_assembly, write_assembly  # noqa: E402
+from planning.assembly import (  # noqa: E402
+    Assembly,
+    AssemblyPart,
+    load_mesh,
+    outward_directions,
+    read_assembly,
+    write_assembly,
+)
 from planning.mesh_damage import AS_EXPORTED, DAMAGES, damaged, export_flaws, is_board  # noqa: E402
 from planning.mesh_intake import DEFAULT_SHEET_THICKNESS_M, intake_mesh  # noqa: E402
 
@@ -51,13 +58,6 @@ def raw_assembly(folder: Path) -> Assembly:
     parts = [AssemblyPart(p.name, load_mesh(folder / p.mesh_file, p.name), p.assembly_from_part, p.mesh_file)
              for p in read.parts]
     return Assembly(read.name, parts, dict(read.metadata))
-
-
-def outward_directions(assembly: Assembly) -> dict[str, np.ndarray]:
-    """Per part, the direction (part frame) away from the assembly's centre, as the assembly reader gives it."""
-    centre = assembly.bounds().mean(axis=0)
-    return {p.name: p.assembly_from_part.rotation.T @ (p.assembly_from_part.apply(p.mesh.bounds.mean(axis=0)) - centre)
-            for p in assembly.parts}
 
 
 def _part_seed(seed: int, index: int) -> int:
@@ -136,7 +136,8 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="mesh_intake_") as tmp:
         for folder in folders:
             intact = raw_assembly(folder)
-            outward = outward_directions(intact)
+            outward = dict(zip((p.name for p in intact.parts), outward_directions(
+                [p.mesh for p in intact.parts], [p.assembly_from_part for p in intact.parts])))
             solids = {p.name: intake_mesh(p.mesh, p.name).mesh for p in intact.parts}
             if args.sequence:
                 intact_seq.append(sequenced(folder, args.time_budget))
