@@ -24,9 +24,8 @@ from planning.assembly import (
     UNIT_TO_METRES,
     AssemblyError,
     load_mesh,
-    outward_directions,
     read_poses,
-    solid_mesh,
+    solid_meshes,
 )
 from planning.mesh_intake import DEFAULT_SHEET_THICKNESS_M
 from planning.pose import Pose
@@ -61,8 +60,9 @@ def load_parts(folder: str | Path, units: str = "m", notes: list[str] | None = N
                sheet_thickness_m: float = DEFAULT_SHEET_THICKNESS_M,
                poses: str | Path | Mapping[str, Pose] | None = None) -> Parts:
     """Every mesh file of ``folder`` (one part each, named after the file), in metres, each turned into the part's
-    solid by :mod:`planning.mesh_intake`: one-surface boards grow ``sheet_thickness_m`` thick away from the
-    assembly's centre where the target ``poses`` are given (:func:`load_poses`), else behind the drawn face.
+    solid by :mod:`planning.mesh_intake` (:func:`planning.assembly.solid_meshes`): where the target ``poses`` are
+    given (:func:`load_poses`), a one-surface board grows to meet the part beside it, or ``sheet_thickness_m``
+    thick away from the part touching it or from the assembly's centre; else behind the drawn face.
     Companion files of the meshes (:data:`COMPANION_SUFFIXES`: ``.mtl`` materials, textures) are skipped, with a
     note. The poses read come back in ``Parts.poses``."""
     folder = Path(folder)
@@ -93,17 +93,14 @@ def load_parts(folder: str | Path, units: str = "m", notes: list[str] | None = N
         except AssemblyError as exc:
             raise BadParts(str(exc)) from exc
     _check_size(folder, names, meshes, units)  # on the meshes as given: a unit mistake is named as one
-    outwards, given = [None] * len(meshes), None
-    if poses is not None:
-        given = load_poses(poses, names)
-        outwards = outward_directions(meshes, [given[name] for name in names])
-    solids, intake = [], {}
-    for name, path, mesh, outward in zip(names, files, meshes, outwards):
-        try:
-            solid, intake[name] = solid_mesh(mesh, f"part {name!r} ({path})", sheet_thickness_m, outward)
-        except AssemblyError as exc:
-            raise BadParts(str(exc)) from exc
-        solids.append(solid)
+    given = None if poses is None else load_poses(poses, names)
+    try:
+        repaired = solid_meshes(meshes, [f"part {name!r} ({path})" for name, path in zip(names, files)],
+                                sheet_thickness_m, None if given is None else [given[name] for name in names])
+    except AssemblyError as exc:
+        raise BadParts(str(exc)) from exc
+    solids = [solid for solid, _ in repaired]
+    intake = {name: record for name, (_, record) in zip(names, repaired)}
     if skipped and notes is not None:
         shown = ", ".join(p.name for p in skipped[:6]) + (f" and {len(skipped) - 6} more" if len(skipped) > 6 else "")
         notes.append(f"{folder}: skipped {len(skipped)} file(s) that are not parts (materials, textures): {shown}")

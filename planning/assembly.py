@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from planning.mesh_intake import DEFAULT_SHEET_THICKNESS_M, MeshIntakeError, intake_mesh
+from planning.mesh_intake import DEFAULT_SHEET_THICKNESS_M, SHEET_REACH_M, MeshIntakeError, intake_mesh, is_solid
 from planning.pose import Pose
 
 MAX_PARTS = 20
@@ -115,7 +115,7 @@ def stretched(assembly: Assembly, factors_xyz) -> Assembly:
 
 def load_mesh(path: Path, where: str, scale_to_metres: float = 1.0) -> trimesh.Trimesh:
     """Load and validate one mesh file (metres after ``scale_to_metres``), as it is written (no repair: see
-    :func:`solid_mesh`); :class:`AssemblyError` names ``where``."""
+    :func:`solid_meshes`); :class:`AssemblyError` names ``where``."""
     if not path.is_file():
         raise AssemblyError(f"{where}: mesh file {path} does not exist")
     try:
@@ -139,8 +139,7 @@ def load_mesh(path: Path, where: str, scale_to_metres: float = 1.0) -> trimesh.T
 
 def outward_directions(meshes: list[trimesh.Trimesh], assembly_from_part: list[Pose]) -> list[np.ndarray]:
     """Per part, the direction (3,) in its own frame from the assembly's centre (the middle of its bounds) to the
-    part's centre: the side a one-surface board grows to (:func:`solid_mesh`), so that it keeps the face its
-    neighbours touch."""
+    part's centre: the side a one-surface board grows to where no neighbour decides (:func:`solid_meshes`)."""
     placed = [pose.apply(np.asarray(m.vertices)) for m, pose in zip(meshes, assembly_from_part)]
     low = np.min([v.min(axis=0) for v in placed], axis=0)
     high = np.max([v.max(axis=0) for v in placed], axis=0)
@@ -149,16 +148,42 @@ def outward_directions(meshes: list[trimesh.Trimesh], assembly_from_part: list[P
             for m, pose in zip(meshes, assembly_from_part)]
 
 
-def solid_mesh(mesh: trimesh.Trimesh, where: str, sheet_thickness_m: float = DEFAULT_SHEET_THICKNESS_M,
-               outward: np.ndarray | None = None):
-    """The solid of a part mesh (metres, part frame) through :func:`planning.mesh_intake.intake_mesh`, and the
-    intake's record: ``(mesh, record)``; a mesh that no repair makes a solid raises :class:`AssemblyError` naming
-    ``where``. ``outward``: (3,) part frame, away from the assembly's centre (the side a one-surface board grows)."""
-    try:
-        intake = intake_mesh(mesh, where, sheet_thickness_m, outward)
-    except MeshIntakeError as exc:
-        raise AssemblyError(str(exc)) from exc
-    return intake.mesh, intake.to_json()
+def neighbours_in_part_frame(meshes: list[trimesh.Trimesh], assembly_from_part: list[Pose], index: int,
+                             reach_m: float = SHEET_REACH_M) -> trimesh.Trimesh:
+    """The meshes of the parts other than ``index`` whose bounds come within ``reach_m`` of its own (assembly
+    frame), placed in part ``index``'s frame, as one mesh (empty when none): what a one-surface board of part
+    ``index`` may grow to meet (:func:`planning.mesh_intake.intake_mesh`)."""
+    placed = [pose.apply(np.asarray(m.vertices)) for m, pose in zip(meshes, assembly_from_part)]
+    low, high = placed[index].min(axis=0) - reach_m, placed[index].max(axis=0) + reach_m
+    part_from_assembly = assembly_from_part[index].rotation.T
+    near = [trimesh.Trimesh((vertices - assembly_from_part[index].position) @ part_from_assembly.T,
+                            np.asarray(meshes[k].faces), process=False)
+            for k, vertices in enumerate(placed)
+            if k != index and np.all(vertices.max(axis=0) >= low) and np.all(vertices.min(axis=0) <= high)]
+    return trimesh.util.concatenate(near) if near else trimesh.Trimesh()
+
+
+def solid_meshes(meshes: list[trimesh.Trimesh], wheres: list[str],
+                 sheet_thickness_m: float = DEFAULT_SHEET_THICKNESS_M,
+                 assembly_from_part: list[Pose] | None = None) -> list[tuple[trimesh.Trimesh, dict]]:
+    """The solid of each part mesh (metres, part frame) through :func:`planning.mesh_intake.intake_mesh`, and the
+    intake's record: ``[(mesh, record)]``. With the parts' poses, a one-surface board grows against the parts
+    placed around it (:func:`neighbours_in_part_frame`), else away from the assembly's centre
+    (:func:`outward_directions`); without them, behind its drawn face. A mesh that no repair makes a solid raises
+    :class:`AssemblyError` naming its ``where``."""
+    outwards = ([None] * len(meshes) if assembly_from_part is None
+                else outward_directions(meshes, assembly_from_part))
+    out = []
+    for index, (mesh, where, outward) in enumerate(zip(meshes, wheres, outwards)):
+        neighbours = None
+        if assembly_from_part is not None and not is_solid(mesh):
+            neighbours = neighbours_in_part_frame(meshes, assembly_from_part, index)
+        try:
+            intake = intake_mesh(mesh, where, sheet_thickness_m, outward, neighbours=neighbours)
+        except MeshIntakeError as exc:
+            raise AssemblyError(str(exc)) from exc
+        out.append((intake.mesh, intake.to_json()))
+    return out
 
 
 def _parse_pose(entry: object, where: str) -> Pose:
@@ -232,8 +257,8 @@ def read_poses(json_path: str | os.PathLike) -> dict[str, Pose]:
 
 def read_assembly(folder: str | os.PathLike, sheet_thickness_m: float = DEFAULT_SHEET_THICKNESS_M) -> Assembly:
     """Read and validate an assembly folder. Meshes and positions come back in metres, each mesh the part's solid
-    (:func:`solid_mesh`: a clean closed mesh as it is; one-surface boards ``sheet_thickness_m`` thick, grown away
-    from the assembly's centre), what the intake did in ``mesh_intake``."""
+    (:func:`solid_meshes`: a clean closed mesh as it is; a one-surface board grown to meet the part beside it, or
+    ``sheet_thickness_m`` thick), what the intake did in ``mesh_intake``."""
     folder = Path(folder)
     json_path = folder / ASSEMBLY_FILE
     if not folder.is_dir():
@@ -247,10 +272,10 @@ def read_assembly(folder: str | os.PathLike, sheet_thickness_m: float = DEFAULT_
         mesh = load_mesh(folder / entry["mesh"], where, scale)
         parts.append(AssemblyPart(entry["name"], mesh, Pose(pose.position * scale, pose.quat_wxyz), entry["mesh"]))
     records = {}
-    outwards = outward_directions([p.mesh for p in parts], [p.assembly_from_part for p in parts])
-    for part, outward in zip(parts, outwards):
-        part.mesh, records[part.name] = solid_mesh(part.mesh, f"{json_path}: part {part.name!r}",
-                                                   sheet_thickness_m, outward)
+    solids = solid_meshes([p.mesh for p in parts], [f"{json_path}: part {p.name!r}" for p in parts],
+                          sheet_thickness_m, [p.assembly_from_part for p in parts])
+    for part, (solid, record) in zip(parts, solids):
+        part.mesh, records[part.name] = solid, record
     metadata = {k: v for k, v in data.items() if k not in ("name", "parts", "units", "up")}
     return Assembly(name=str(data.get("name", folder.name)), parts=parts, metadata=metadata, mesh_intake=records)
 

@@ -130,10 +130,11 @@ def _store_cached(path: Path, pieces: list[trimesh.Trimesh]) -> None:
         pass  # a read-only home is no reason to fail; the pieces are simply recomputed next time
 
 
-def convex_pieces(mesh: trimesh.Trimesh, use_disk_cache: bool = True) -> list[trimesh.Trimesh]:
-    """Convex meshes whose union approximates ``mesh`` (same frame and unit)."""
+def convex_pieces(mesh: trimesh.Trimesh, use_cache: bool = True) -> list[trimesh.Trimesh]:
+    """Convex meshes whose union approximates ``mesh`` (same frame and unit). ``use_cache=False``: computed afresh,
+    neither read from nor written to the caches (in memory and on disk), as a first run would."""
     key = mesh_key(mesh)
-    if key in _memory_cache:
+    if use_cache and key in _memory_cache:
         return _memory_cache[key]
     components = mesh.split(only_watertight=False) if len(mesh.faces) > 0 else []
     components = [c for c in components if len(c.vertices) >= 4 and c.area > 0] or [mesh]
@@ -150,11 +151,12 @@ def convex_pieces(mesh: trimesh.Trimesh, use_disk_cache: bool = True) -> list[tr
                     concave.append(component)
     if concave:
         path = cache_dir() / f"{key}.npz"
-        cached = _load_cached(path) if use_disk_cache and path.exists() else None
+        cached = _load_cached(path) if use_cache and path.exists() else None
         if cached is None:
             cached = [hull for component in concave for hull in _decompose(component)]
-            if use_disk_cache:
+            if use_cache:
                 _store_cached(path, cached)
         pieces.extend(cached)
-    _memory_cache[key] = pieces
+    if use_cache:
+        _memory_cache[key] = pieces
     return pieces

@@ -14,9 +14,12 @@ face outwards for grasps), so :func:`intake_mesh` makes one, in the part's own f
 3. Each connected piece on its own:
 
    - a *single-surface board* (an open piece thinner than ``sheet_max_thickness``, 1 mm) becomes a board: its
-     faces extruded to ``sheet_thickness`` (3 mm, a hardboard back panel) on the side of ``outward`` (away from
-     the assembly's centre) where that is known, else behind the drawn face (against the direction most of its
-     face normals point: a surface is drawn as seen from outside);
+     faces extruded. Where the other parts are placed around it (``neighbours``), it grows away from a part that
+     touches one face, ``sheet_thickness`` thick (3 mm, a hardboard back panel); where none touches it but one
+     stands within ``sheet_reach`` (40 mm) on one side, it grows to meet that part: a board drawn as one face of a
+     16 mm shelf regains its 16 mm (:func:`planning.mesh_surface.sheet_growth`). Otherwise ``sheet_thickness``
+     on the side of ``outward`` (away from the assembly's centre) where that is known, else behind the drawn face
+     (against the direction most of its face normals point: a surface is drawn as seen from outside);
    - any other open piece has its holes closed with fans of triangles
      (:func:`planning.mesh_surface.holes_closed`), and is turned outwards where it encloses a negative volume;
    - a piece still not closed after that is reconstructed watertight: the union of the convex hulls of its
@@ -46,6 +49,8 @@ from planning.mesh_surface import (
     extruded_sheet,
     holes_closed,
     is_closed_oriented,
+    sheet_gaps,
+    sheet_growth,
     thinnest_axis,
 )
 
@@ -53,6 +58,9 @@ DEFAULT_SHEET_THICKNESS_M = 0.003
 """Thickness given to a board drawn as one surface: 3 mm, IKEA's hardboard back panels and drawer bottoms."""
 SHEET_MAX_THICKNESS_M = 0.001
 """An open piece thinner than this (metres, along its least principal axis) is a board drawn as one surface."""
+SHEET_REACH_M = 0.04
+"""A one-surface board grows to meet a neighbour at most this far from its drawn face (metres): the thickest
+boards of furniture (worktops, table tops) are about 40 mm."""
 
 
 class MeshIntakeError(ValueError):
@@ -180,6 +188,7 @@ class _Log:
 
     def __init__(self) -> None:
         self.counts: dict[str, float] = {}
+        self.sheet_mm: list[float] = []  # the thickness each one-surface board was given
 
     def add(self, kind: str, count: float = 1) -> None:
         if count:
@@ -191,26 +200,48 @@ class _Log:
                    "repeated": "dropped {n} repeated faces", "loose": "{n} loose pieces kept as one rigid part",
                    "rewound": "rewound {n} faces", "holes": "closed {n} holes",
                    "inverted": "turned {n} inside-out pieces outwards",
-                   "sheet": "extruded {n} one-surface boards to {t:g} mm"}
-        out = []
-        for kind, n in self.counts.items():
-            template = phrases.get(kind, "{kind} ({n})")
-            out.append(template.format(n=int(n), t=self.counts.get("thickness_mm", 0), kind=kind))
-        return tuple(w for w, k in zip(out, self.counts) if k != "thickness_mm")
+                   "sheet": "extruded {n} one-surface boards to {t} mm",
+                   "sheet met": "grew {n} of them to meet the part beside them"}
+        thickness = ", ".join(f"{t:.3g}" for t in sorted(set(np.round(self.sheet_mm, 1))))
+        return tuple(phrases.get(kind, "{kind} ({n})").format(n=int(n), t=thickness, kind=kind)
+                     for kind, n in self.counts.items())
 
 
-def _solid_piece(piece: trimesh.Trimesh, settings: tuple[float, float], outward: np.ndarray | None,
-                 log: _Log) -> trimesh.Trimesh | None:
+@dataclass(frozen=True)
+class _SheetSettings:
+    thickness: float
+    max_thickness: float
+    reach: float
+    outward: np.ndarray | None
+    neighbours: trimesh.Trimesh | None
+
+
+def _sheet(piece: trimesh.Trimesh, axes: np.ndarray, sheet: _SheetSettings, log: _Log) -> trimesh.Trimesh:
+    """A one-surface board ``piece`` (``axes``: its principal axes, rows, the plane's normal last) made a board
+    (see the module: step 3). It meets a neighbour at most half its width away: a strip is no board."""
+    growth = None
+    if sheet.neighbours is not None and len(sheet.neighbours.faces):
+        width = float(np.ptp(np.asarray(piece.vertices) @ axes[1]))
+        gaps = sheet_gaps(piece, axes[2], sheet.neighbours, min(sheet.reach, 0.5 * width))
+        growth = sheet_growth(gaps, sheet.thickness)
+    thickness, side = sheet.thickness, sheet.outward
+    if growth is not None:
+        side, thickness = growth[0] * axes[2], growth[1]
+    log.add("sheet")
+    if thickness != sheet.thickness:
+        log.add("sheet met")
+    log.sheet_mm.append(thickness * 1000.0)  # the readers pass metres
+    return extruded_sheet(piece, thickness, side)
+
+
+def _solid_piece(piece: trimesh.Trimesh, sheet: _SheetSettings, log: _Log) -> trimesh.Trimesh | None:
     """Step 3 for one connected, consistently wound piece: a solid, or None when the piece has no volume."""
-    thickness, sheet_max = settings
     if is_solid(piece):
         return piece
     closed = is_closed_oriented(np.asarray(piece.faces))
-    _, _, spread = thinnest_axis(np.asarray(piece.vertices))
-    if not closed and spread < sheet_max:
-        log.add("sheet")
-        log.counts["thickness_mm"] = thickness * 1000.0
-        return extruded_sheet(piece, thickness, outward)
+    _, axes, spread = thinnest_axis(np.asarray(piece.vertices))
+    if not closed and spread < sheet.max_thickness:
+        return _sheet(piece, axes, sheet, log)
     if not closed:
         piece, holes = holes_closed(piece)
         log.add("holes", holes)
@@ -237,11 +268,12 @@ def _hull_volume(mesh: trimesh.Trimesh) -> float:
 
 def intake_mesh(mesh: trimesh.Trimesh, name: str, sheet_thickness: float = DEFAULT_SHEET_THICKNESS_M,
                 outward: np.ndarray | None = None, sheet_max_thickness: float = SHEET_MAX_THICKNESS_M,
-                ) -> MeshIntake:
+                neighbours: trimesh.Trimesh | None = None, sheet_reach: float = SHEET_REACH_M) -> MeshIntake:
     """The solid of a part (see the module) and what was done; ``name`` says which part in messages (such as
     ``part 'leg_1'``). ``mesh``: the part's mesh in its own frame;
-    ``sheet_thickness`` and ``sheet_max_thickness`` in the mesh's unit; ``outward``: (3,) a direction in the part
-    frame pointing away from the assembly's centre (for the side a one-surface board grows to), or None.
+    ``sheet_thickness``, ``sheet_max_thickness`` and ``sheet_reach`` in the mesh's unit; ``outward``: (3,) a
+    direction in the part frame pointing away from the assembly's centre, or None; ``neighbours``: the other
+    parts' meshes as given, placed in this part's frame, or None (both for the side a one-surface board grows to).
     Raises :class:`MeshIntakeError` when no solid can be made."""
     volume_before = _signed_volume(mesh) if len(mesh.faces) else 0.0
     if is_solid(mesh):
@@ -261,10 +293,11 @@ def intake_mesh(mesh: trimesh.Trimesh, name: str, sheet_thickness: float = DEFAU
     unit_outward = None
     if outward is not None and np.linalg.norm(outward) > 0:
         unit_outward = np.asarray(outward, dtype=np.float64) / np.linalg.norm(outward)
+    sheet = _SheetSettings(sheet_thickness, sheet_max_thickness, sheet_reach, unit_outward, neighbours)
     solids = []
     for group in groups:
         piece = cleaned.submesh([group], append=True, repair=False)
-        solid = _solid_piece(piece, (sheet_thickness, sheet_max_thickness), unit_outward, log)
+        solid = _solid_piece(piece, sheet, log)
         if solid is not None:
             solids.append(solid)
     if not solids:

@@ -62,6 +62,47 @@ def extruded_sheet(piece: trimesh.Trimesh, thickness: float, outward: np.ndarray
     return board
 
 
+SHEET_TOUCH_M = 0.0005
+"""A neighbour within this (metres) of a one-surface board's drawn face touches it there."""
+SHEET_RAY_COUNT = 256
+
+
+def sheet_gaps(piece: trimesh.Trimesh, normal: np.ndarray, neighbours: trimesh.Trimesh, reach: float,
+               seed: int = 0) -> tuple[float, float]:
+    """How far a one-surface board ``piece`` may grow on each side before it meets a neighbour: the nearest hit
+    of rays cast from points on it (``SHEET_RAY_COUNT``, sampled with ``seed``) along ``+normal`` and
+    ``-normal`` into ``neighbours`` (the other parts, in the piece's frame and unit), inf on a side where none is
+    nearer than ``reach``; 0 where a neighbour touches the face or cuts through it."""
+    points, _ = trimesh.sample.sample_surface(piece, SHEET_RAY_COUNT, seed=seed)
+    points = np.concatenate([points, np.asarray(piece.vertices)])
+    gaps = []
+    for direction in (normal, -normal):
+        back = SHEET_TOUCH_M * 2  # cast from just behind the face, so that a neighbour lying on it is hit
+        origins = points - direction * back
+        directions = np.broadcast_to(direction, origins.shape)
+        locations, rays, _ = neighbours.ray.intersects_location(origins, directions, multiple_hits=True)
+        along = np.einsum("ij,j->i", locations - origins[rays], direction) - back if len(rays) else np.zeros(0)
+        near = along[along <= reach]
+        gaps.append(max(float(near.min()), 0.0) if len(near) else float("inf"))
+    return gaps[0], gaps[1]
+
+
+def sheet_growth(gaps: tuple[float, float], thickness: float) -> tuple[float, float] | None:
+    """Which side (+1 along the normal, -1 against it) and how thick a one-surface board grows, from its
+    :func:`sheet_gaps`: where a neighbour touches one side, ``thickness`` on the other side (less where another
+    part stands nearer there); where neither side is touched but a neighbour stands within reach, up to that
+    neighbour (the board fills the gap it was drawn beside: its real thickness). None where neither rule
+    decides (nothing within reach, or both sides touched): the caller's default."""
+    touched = [gap <= SHEET_TOUCH_M for gap in gaps]
+    if touched[0] != touched[1]:
+        free = 1 if touched[0] else 0
+        return (1.0 if free == 0 else -1.0), min(thickness, gaps[free])
+    if not any(touched) and min(gaps) < float("inf"):
+        near = int(np.argmin(gaps))
+        return (1.0 if near == 0 else -1.0), gaps[near]
+    return None
+
+
 def boundary_loops(faces: np.ndarray) -> list[list[int]]:
     """The holes of a consistently wound surface ``faces`` (F, 3): loops of vertex indices, each following the
     direction of the faces' edges along it (every directed edge met by its reverse fewer times than it occurs)."""
