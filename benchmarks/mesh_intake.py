@@ -31,6 +31,7 @@ import os
 import sys
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +52,7 @@ from planning.assembly import (  # noqa: E402
 )
 from planning.convex import convex_pieces  # noqa: E402
 from planning.mesh_damage import AS_EXPORTED, DAMAGES, damaged, export_flaws, is_board  # noqa: E402
-from planning.mesh_intake import DEFAULT_SHEET_THICKNESS_M, intake_mesh, is_solid  # noqa: E402
+from planning.mesh_intake import DEFAULT_SHEET_THICKNESS_M, intake_mesh  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -157,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.sequence:
                 intact_seq.append(sequenced(folder, args.time_budget))
             if args.decompose:
-                intact_decompose.append(first_decomposition_s(list(solids.values())))
+                intact_decompose.append((first_decomposition_s(list(solids.values())), folder.name))
             for damage in args.damages:
                 broken = broken_assembly(intact, damage, args.seed)
                 row = rows[damage]
@@ -165,8 +166,8 @@ def main(argv: list[str] | None = None) -> int:
                 broken_solids = []
                 for k, (part, original) in enumerate(zip(broken.parts, intact.parts)):
                     start = time.perf_counter()  # as the readers do (planning.assembly.solid_meshes)
-                    neighbours = (None if is_solid(part.mesh) else neighbours_in_part_frame(
-                        [p.mesh for p in broken.parts], [p.assembly_from_part for p in broken.parts], k))
+                    neighbours = partial(neighbours_in_part_frame, [p.mesh for p in broken.parts],
+                                         [p.assembly_from_part for p in broken.parts], k)
                     result = intake_mesh(part.mesh, part.name, outward=outward[part.name], neighbours=neighbours)
                     row["seconds"].append(time.perf_counter() - start)
                     broken_solids.append(result.mesh)
@@ -184,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
                         outliers.append(f"{folder.name}/{part.name} {damage}: volume {100 * error:+.1f}%, "
                                         f"{row['seconds'][-1]:.1f} s ({'; '.join(result.fixes)})")
                 if args.decompose:
-                    row["decompose"].append(first_decomposition_s(broken_solids))
+                    row["decompose"].append((first_decomposition_s(broken_solids), folder.name))
                 if args.sequence:
                     ok, why = sequenced(write_assembly(broken, Path(tmp) / f"{folder.name}_{damage}"),
                                         args.time_budget)
@@ -218,7 +219,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.sequence:
             line += f" {sum(row['seq'])}/{len(row['seq'])} |"
         if args.decompose:
-            line += f" {np.median(row['decompose']):.1f} / {np.max(row['decompose']):.1f} |"
+            seconds, slowest = max(row["decompose"])
+            line += f" {np.median([s for s, _ in row['decompose']]):.1f} / {seconds:.1f} ({slowest}) |"
         if args.build:
             built = sum(record["exit_code"] == 0 for record in row["build"])
             line += f" {built}/{len(row['build'])} ({row['same']} identical) |"
@@ -229,8 +231,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.sequence:
         print(f"\nintact objects sequenced: {sum(ok for ok, _ in intact_seq)}/{len(intact_seq)}")
     if args.decompose:
-        print(f"\nintact objects, first decomposition: median {np.median(intact_decompose):.1f} s, "
-              f"max {np.max(intact_decompose):.1f} s per object")
+        seconds, slowest = max(intact_decompose)
+        print(f"\nintact objects, first decomposition: median {np.median([s for s, _ in intact_decompose]):.1f} s, "
+              f"max {seconds:.1f} s per object ({slowest})")
     for row in rows.values():
         for record in row["build"]:
             if record["exit_code"] != 0:

@@ -56,7 +56,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--sheet-thickness", type=float, default=3.0, metavar="MM",
                         help="thickness given to a part drawn as one surface (a board without thickness), grown "
                         "away from the assembly's centre with --poses, else behind its drawn face (default 3 mm, a "
-                        "hardboard back panel)")
+                        "hardboard back panel); with --poses, a board touched on neither face grows instead to meet "
+                        "a part up to 60 mm beside it")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="seconds of kitting and motion planning per build (standing, then upside down) before "
                         "the planner stops trying other placements of the jig (default 300)")

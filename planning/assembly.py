@@ -28,12 +28,13 @@ import os
 import shutil
 import tempfile
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from planning.mesh_intake import DEFAULT_SHEET_THICKNESS_M, SHEET_REACH_M, MeshIntakeError, intake_mesh, is_solid
+from planning.mesh_intake import DEFAULT_SHEET_THICKNESS_M, SHEET_REACH_M, MeshIntakeError, intake_mesh
 from planning.pose import Pose
 
 MAX_PARTS = 20
@@ -175,9 +176,8 @@ def solid_meshes(meshes: list[trimesh.Trimesh], wheres: list[str],
                 else outward_directions(meshes, assembly_from_part))
     out = []
     for index, (mesh, where, outward) in enumerate(zip(meshes, wheres, outwards)):
-        neighbours = None
-        if assembly_from_part is not None and not is_solid(mesh):
-            neighbours = neighbours_in_part_frame(meshes, assembly_from_part, index)
+        neighbours = None if assembly_from_part is None else partial(neighbours_in_part_frame, meshes,
+                                                                          assembly_from_part, index)
         try:
             intake = intake_mesh(mesh, where, sheet_thickness_m, outward, neighbours=neighbours)
         except MeshIntakeError as exc:

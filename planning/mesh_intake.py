@@ -16,7 +16,7 @@ face outwards for grasps), so :func:`intake_mesh` makes one, in the part's own f
    - a *single-surface board* (an open piece thinner than ``sheet_max_thickness``, 1 mm) becomes a board: its
      faces extruded. Where the other parts are placed around it (``neighbours``), it grows away from a part that
      touches one face, ``sheet_thickness`` thick (3 mm, a hardboard back panel); where none touches it but one
-     stands within ``sheet_reach`` (40 mm) on one side, it grows to meet that part: a board drawn as one face of a
+     stands within ``sheet_reach`` (60 mm) on one side, it grows to meet that part: a board drawn as one face of a
      16 mm shelf regains its 16 mm (:func:`planning.mesh_surface.sheet_growth`). Otherwise ``sheet_thickness``
      on the side of ``outward`` (away from the assembly's centre) where that is known, else behind the drawn face
      (against the direction most of its face normals point: a surface is drawn as seen from outside);
@@ -37,6 +37,7 @@ there why). A cavity drawn as an inner shell is taken as a loose piece and fille
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,9 +59,9 @@ DEFAULT_SHEET_THICKNESS_M = 0.003
 """Thickness given to a board drawn as one surface: 3 mm, IKEA's hardboard back panels and drawer bottoms."""
 SHEET_MAX_THICKNESS_M = 0.001
 """An open piece thinner than this (metres, along its least principal axis) is a board drawn as one surface."""
-SHEET_REACH_M = 0.04
+SHEET_REACH_M = 0.06
 """A one-surface board grows to meet a neighbour at most this far from its drawn face (metres): the thickest
-boards of furniture (worktops, table tops) are about 40 mm."""
+boards of furniture (honeycomb table tops) are about 50 mm."""
 
 
 class MeshIntakeError(ValueError):
@@ -213,16 +214,17 @@ class _SheetSettings:
     max_thickness: float
     reach: float
     outward: np.ndarray | None
-    neighbours: trimesh.Trimesh | None
+    neighbours: Callable[[], trimesh.Trimesh] | None
 
 
 def _sheet(piece: trimesh.Trimesh, axes: np.ndarray, sheet: _SheetSettings, log: _Log) -> trimesh.Trimesh:
     """A one-surface board ``piece`` (``axes``: its principal axes, rows, the plane's normal last) made a board
     (see the module: step 3). It meets a neighbour at most half its width away: a strip is no board."""
     growth = None
-    if sheet.neighbours is not None and len(sheet.neighbours.faces):
+    neighbours = sheet.neighbours() if sheet.neighbours is not None else None
+    if neighbours is not None and len(neighbours.faces):
         width = float(np.ptp(np.asarray(piece.vertices) @ axes[1]))
-        gaps = sheet_gaps(piece, axes[2], sheet.neighbours, min(sheet.reach, 0.5 * width))
+        gaps = sheet_gaps(piece, axes[2], neighbours, min(sheet.reach, 0.5 * width))
         growth = sheet_growth(gaps, sheet.thickness)
     thickness, side = sheet.thickness, sheet.outward
     if growth is not None:
@@ -268,12 +270,14 @@ def _hull_volume(mesh: trimesh.Trimesh) -> float:
 
 def intake_mesh(mesh: trimesh.Trimesh, name: str, sheet_thickness: float = DEFAULT_SHEET_THICKNESS_M,
                 outward: np.ndarray | None = None, sheet_max_thickness: float = SHEET_MAX_THICKNESS_M,
-                neighbours: trimesh.Trimesh | None = None, sheet_reach: float = SHEET_REACH_M) -> MeshIntake:
+                neighbours: Callable[[], trimesh.Trimesh] | None = None, sheet_reach: float = SHEET_REACH_M,
+                ) -> MeshIntake:
     """The solid of a part (see the module) and what was done; ``name`` says which part in messages (such as
     ``part 'leg_1'``). ``mesh``: the part's mesh in its own frame;
     ``sheet_thickness``, ``sheet_max_thickness`` and ``sheet_reach`` in the mesh's unit; ``outward``: (3,) a
-    direction in the part frame pointing away from the assembly's centre, or None; ``neighbours``: the other
-    parts' meshes as given, placed in this part's frame, or None (both for the side a one-surface board grows to).
+    direction in the part frame pointing away from the assembly's centre, or None; ``neighbours``: a function giving
+    the other parts' meshes as given, placed in this part's frame (called once per one-surface board), or None
+    (both for the side a one-surface board grows to and how thick).
     Raises :class:`MeshIntakeError` when no solid can be made."""
     volume_before = _signed_volume(mesh) if len(mesh.faces) else 0.0
     if is_solid(mesh):
