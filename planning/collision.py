@@ -156,6 +156,27 @@ def penetration(vertices_a: np.ndarray, axes_a: np.ndarray, vertices_b: np.ndarr
     return float(depth[k]), axes[k] * (1.0 if forward[k] else -1.0)
 
 
+def _piece_distance(part_a: ConvexPart, i: int, world_from_a: Pose, transform_a, part_b: ConvexPart, j: int,
+                    world_from_b: Pose, transform_b) -> DistanceResult:
+    """Signed distance between piece ``i`` of ``part_a`` and piece ``j`` of ``part_b`` (``transform_*``: the poses
+    as FCL transforms)."""
+    result = fcl.DistanceResult()
+    distance = fcl.distance(
+        fcl.CollisionObject(part_a.geometries[i], transform_a),
+        fcl.CollisionObject(part_b.geometries[j], transform_b),
+        _REQUEST,
+        result,
+    )
+    if distance > 1e-9:
+        point_a, point_b = np.array(result.nearest_points[0]), np.array(result.nearest_points[1])
+        return DistanceResult(float(distance), point_a, point_b, (point_b - point_a) / distance)
+    depth, normal = penetration(
+        world_from_a.apply(part_a.piece_vertices[i]), part_a.piece_normals[i] @ world_from_a.rotation.T,
+        world_from_b.apply(part_b.piece_vertices[j]), part_b.piece_normals[j] @ world_from_b.rotation.T,
+    )
+    return DistanceResult(-max(depth, 0.0), normal_ab=normal)  # GJK says they meet: at most touching
+
+
 def signed_distance(part_a: ConvexPart, world_from_a: Pose, part_b: ConvexPart, world_from_b: Pose,
                     cutoff_m: float = np.inf) -> DistanceResult:
     """Minimum signed distance between the pieces of two posed parts (negative: deepest penetration)."""
@@ -167,26 +188,22 @@ def signed_distance(part_a: ConvexPart, world_from_a: Pose, part_b: ConvexPart, 
     transform_a, transform_b = world_from_a.to_fcl(), world_from_b.to_fcl()
     best = DistanceResult(np.inf)
     for i, j in candidates:
-        result = fcl.DistanceResult()
-        distance = fcl.distance(
-            fcl.CollisionObject(part_a.geometries[i], transform_a),
-            fcl.CollisionObject(part_b.geometries[j], transform_b),
-            _REQUEST,
-            result,
-        )
-        if distance > 1e-9:
-            if distance < best.distance_m:
-                point_a, point_b = np.array(result.nearest_points[0]), np.array(result.nearest_points[1])
-                best = DistanceResult(float(distance), point_a, point_b, (point_b - point_a) / distance)
-            continue
-        depth, normal = penetration(
-            world_from_a.apply(part_a.piece_vertices[i]), part_a.piece_normals[i] @ world_from_a.rotation.T,
-            world_from_b.apply(part_b.piece_vertices[j]), part_b.piece_normals[j] @ world_from_b.rotation.T,
-        )
-        depth = max(depth, 0.0)  # GJK says they meet: at most touching
-        if -depth < best.distance_m:
-            best = DistanceResult(-depth, normal_ab=normal)
+        result = _piece_distance(part_a, i, world_from_a, transform_a, part_b, j, world_from_b, transform_b)
+        if result.distance_m < best.distance_m:
+            best = result
     return best
+
+
+def overlapping_pieces(part_a: ConvexPart, world_from_a: Pose, part_b: ConvexPart, world_from_b: Pose,
+                       min_depth_m: float = 0.0) -> list[tuple[int, int]]:
+    """The pairs (piece of ``part_a``, piece of ``part_b``) that overlap by more than ``min_depth_m`` (metres) where
+    the two parts are posed: where two parts overlap, not only how deep."""
+    bounds_a, bounds_b = part_a.piece_bounds(world_from_a), part_b.piece_bounds(world_from_b)
+    candidates = np.argwhere(box_gap(bounds_a[:, None], bounds_b[None, :]) <= 0.0)
+    transform_a, transform_b = world_from_a.to_fcl(), world_from_b.to_fcl()
+    return [(int(i), int(j)) for i, j in candidates
+            if _piece_distance(part_a, i, world_from_a, transform_a, part_b, j, world_from_b,
+                               transform_b).distance_m < -min_depth_m]
 
 
 def overlapping_pairs(parts: Sequence[ConvexPart], poses: Sequence[Pose],

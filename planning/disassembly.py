@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import networkx as nx
 import numpy as np
 
-from planning.collision import ConvexPart, box_gap, signed_distance
+from planning.collision import ConvexPart, box_gap, overlapping_pieces, signed_distance
 from planning.contact import FLOOR, all_grounded, contact_graph, pieces, support_graph, ungrounded
 from planning.pose import Pose
 from planning.sweep import PENETRATION_TOLERANCE_M, blocks, leaves_above_floor, travel_to_clear_m
@@ -112,6 +112,7 @@ class _Planner:
         self.gap = {a: {b: float(box_gap(bounds[a], bounds[b])) for b in self.names} for a in self.names}
         self._blocked: dict[tuple[str, int, str], bool] = {}
         self._overlap_partners: dict[str, tuple[str, ...]] = {}
+        self._overlap_regions: dict[tuple[str, str], list[tuple[np.ndarray, np.ndarray]]] = {}
         self._floor_ok: dict[tuple[str, int], bool] = {}
         self._grasps: dict[tuple, object | None] = {}
         self.failed: set[frozenset] = set()
@@ -153,12 +154,30 @@ class _Planner:
                                     cutoff_m=0.0).distance_m < -PENETRATION_TOLERANCE_M)
         return self._overlap_partners[name]
 
+    def overlap_regions(self, name: str, other: str) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Where ``name`` overlaps ``other`` at the targets: the world vertices of each pair of their convex pieces
+        (``name``'s, ``other``'s) that overlap by more than the sweep's penetration tolerance; the whole parts'
+        where no pair does."""
+        key = (name, other)
+        if key not in self._overlap_regions:
+            part, obstacle = self.parts[name], self.parts[other]
+            pose, obstacle_pose = self.poses[name], self.poses[other]
+            pairs = overlapping_pieces(part, pose, obstacle, obstacle_pose, PENETRATION_TOLERANCE_M)
+            self._overlap_regions[key] = [
+                (pose.apply(part.piece_vertices[i]), obstacle_pose.apply(obstacle.piece_vertices[j]))
+                for i, j in pairs] or [(self.world_vertices[name], self.world_vertices[other])]
+        return self._overlap_regions[key]
+
     def overlap_exit(self, name: str, k: int, present: frozenset) -> tuple[float, str | None]:
-        """How far ``name`` moves along its removal direction ``k`` until it lies beyond every part of ``present``
-        it overlaps at the targets, and the part it leaves last ((0, None) when it overlaps none)."""
+        """How far ``name`` moves along its removal direction ``k`` until each of its convex pieces that overlaps
+        a piece of a part of ``present`` at the targets lies beyond that piece, and the part it leaves last ((0,
+        None) when it overlaps none). A panel drawn into a groove along its whole length leaves it at the groove's
+        end; two frames crossed at a joint, whose pieces overlap only there, leave each other as soon as the
+        pieces at the joint part (not once the whole frames lie beyond each other)."""
         direction = self.directions[name][k]
         # by travel only: a partner it leaves at once (travel 0, a flat piece flush with it) ties with (0, None)
-        return max([(travel_to_clear_m(self.world_vertices[name], self.world_vertices[other], direction), other)
+        return max([(max(travel_to_clear_m(moving, obstacle, direction)
+                         for moving, obstacle in self.overlap_regions(name, other)), other)
                     for other in self.overlap_partners(name) if other in present] + [(0.0, None)],
                    key=lambda exit_and_part: exit_and_part[0])
 

@@ -239,6 +239,36 @@ def test_a_part_that_would_stay_inside_its_neighbour_beyond_the_longest_way_in_g
     np.testing.assert_allclose(limited.steps[limited.order.index("side")].insertion_direction, [-1, 0, 0], atol=1e-9)
 
 
+def test_frames_crossed_at_a_half_lap_leave_each_other_once_the_joint_parts():
+    """Two 42 cm tall arches (a leg at each end, a rail across the top) standing crossed, as a chair's two leg
+    frames: the upper one's rail lies in a notch of the lower one's, 1 mm into its floor (as convex pieces of real
+    meshes bulge across a joint). The notch's walls and the legs hold the upper arch in every direction but up;
+    lifting it parts the joint after 1 mm, well within the cell's longest way in (32 cm), although the arches lie
+    wholly above each other only after 43 cm. Measured by the whole parts, up stayed inside the other arch too long,
+    and no order was found."""
+    def box(size, centre):
+        return trimesh.creation.box(size, trimesh.transformations.translation_matrix(centre))
+
+    half, thick = 0.166, 0.012
+    leg_x, leg_y = (half - thick / 2, 0.0, 0.0), (0.0, half - thick / 2, 0.0)
+    lower = trimesh.util.concatenate([  # rail along x, z 0.405 to 0.425, notched 10 mm deep across its middle
+        box([half - thick / 2, thick, 0.02], [-(half + thick / 2) / 2, 0, 0.415]),
+        box([half - thick / 2, thick, 0.02], [(half + thick / 2) / 2, 0, 0.415]),
+        box([thick, thick, 0.01], [0, 0, 0.41]),
+        *(box([thick, thick, 0.405], np.multiply(end, leg_x) + [0, 0, 0.2025]) for end in (-1, 1))])
+    upper = trimesh.util.concatenate([  # rail along y, z 0.414 to 0.434, 0.1 mm clear of the notch's walls
+        box([thick - 0.0002, 2 * half, 0.02], [0, 0, 0.424]),
+        *(box([thick, thick, 0.414], np.multiply(end, leg_y) + [0, 0, 0.207]) for end in (-1, 1))])
+    frames = Assembly("crossed", [AssemblyPart("lower", lower, Pose([0, 0, 0], IDENTITY)),
+                                  AssemblyPart("upper", upper, Pose([0, 0, 0], IDENTITY))])
+    parts, poses = convex_parts(frames)
+    assert signed_distance(parts[1], poses[1], parts[0], poses[0]).distance_m == pytest.approx(-0.001)
+    result = plan_sequence(parts, poses, time_budget_s=5.0, max_overlap_exit_m=0.32)
+    assert result.success, result.reason
+    assert result.order == ["lower", "upper"]
+    np.testing.assert_allclose(result.steps[1].insertion_direction, [0, 0, -1], atol=1e-9)
+
+
 def test_peg_in_closed_frame_only_goes_in_from_above():
     assembly = peg_in_frame()
     parts, poses = convex_parts(assembly)
