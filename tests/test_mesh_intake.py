@@ -138,6 +138,21 @@ def test_a_one_surface_board_meets_the_part_it_was_drawn_beside(tmp_path, gap_mm
     assert ("grew 1 of them to meet the part beside them" in fixes) == (gap_mm < 60)
 
 
+def test_a_narrow_strip_does_not_grow_across_to_a_distant_part():
+    """A strip 10 mm wide drawn as one surface, 16 mm from a block: more than half its width away, so it keeps
+    the sheet thickness (3 mm, away from the given side) instead of growing a 16 mm fin to the block."""
+    strip = trimesh.Trimesh([[-0.15, -0.005, 0], [0.15, -0.005, 0], [0.15, 0.005, 0], [-0.15, 0.005, 0]],
+                            [[0, 1, 2], [0, 2, 3]], process=False)
+    block = trimesh.creation.box([0.3, 0.2, 0.1])
+    block.apply_translation([0, 0, -0.066])  # its top 16 mm below the strip
+
+    result = intake_mesh(strip, "part 'strip'", outward=np.array([0.0, 0.0, 1.0]), neighbours=lambda: block)
+    assert result.mesh.bounds[:, 2] == pytest.approx([0.0, 0.003], abs=1e-9)
+    wide = trimesh.Trimesh(strip.vertices * [1, 10, 1], strip.faces, process=False)  # 100 mm wide: a board
+    result = intake_mesh(wide, "part 'board'", outward=np.array([0.0, 0.0, 1.0]), neighbours=lambda: block)
+    assert result.mesh.bounds[:, 2] == pytest.approx([-0.016, 0.0], abs=1e-6)
+
+
 def test_load_parts_takes_a_one_surface_board(tmp_path):
     from cell.inputs import load_parts
 
