@@ -149,19 +149,33 @@ def outward_directions(meshes: list[trimesh.Trimesh], assembly_from_part: list[P
             for m, pose in zip(meshes, assembly_from_part)]
 
 
+def _outward_faces(mesh: trimesh.Trimesh) -> np.ndarray:
+    """``mesh``'s faces, reversed where it encloses a negative volume (drawn inside-out): what a ray enters it by
+    faces it (an open or mixed mesh keeps its faces; rays then enter by the ones drawn right)."""
+    faces = np.asarray(mesh.faces)
+    with np.errstate(all="ignore"):
+        volume = float(trimesh.triangles.mass_properties(mesh.triangles, skip_inertia=True).volume)
+    return faces[:, ::-1] if volume < 0 else faces
+
+
 def neighbours_in_part_frame(meshes: list[trimesh.Trimesh], assembly_from_part: list[Pose], index: int,
                              reach_m: float = SHEET_REACH_M) -> trimesh.Trimesh:
-    """The meshes of the parts other than ``index`` whose bounds come within ``reach_m`` of its own (assembly
-    frame), placed in part ``index``'s frame, as one mesh (empty when none): what a one-surface board of part
-    ``index`` may grow to meet (:func:`planning.mesh_intake.intake_mesh`)."""
+    """What a one-surface board of part ``index`` may grow to meet (:func:`planning.mesh_intake.intake_mesh`), as
+    one mesh placed in part ``index``'s frame (empty when nothing is near): the meshes of the other parts whose
+    bounds come within ``reach_m`` of its own (their faces turned outwards, :func:`_outward_faces`), and the floor
+    (the plane z = 0 of the assembly frame, as a slab under the part) where the part comes within ``reach_m`` of
+    it."""
     placed = [pose.apply(np.asarray(m.vertices)) for m, pose in zip(meshes, assembly_from_part)]
     low, high = placed[index].min(axis=0) - reach_m, placed[index].max(axis=0) + reach_m
-    part_from_assembly = assembly_from_part[index].rotation.T
-    near = [trimesh.Trimesh((vertices - assembly_from_part[index].position) @ part_from_assembly.T,
-                            np.asarray(meshes[k].faces), process=False)
-            for k, vertices in enumerate(placed)
+    near = [(vertices, _outward_faces(meshes[k])) for k, vertices in enumerate(placed)
             if k != index and np.all(vertices.max(axis=0) >= low) and np.all(vertices.min(axis=0) <= high)]
-    return trimesh.util.concatenate(near) if near else trimesh.Trimesh()
+    if low[2] <= 0.0:
+        floor = trimesh.creation.box(bounds=[[low[0], low[1], -reach_m], [high[0], high[1], 0.0]])
+        near.append((np.asarray(floor.vertices), np.asarray(floor.faces)))
+    part_from_assembly = assembly_from_part[index].rotation.T
+    return trimesh.util.concatenate([
+        trimesh.Trimesh((vertices - assembly_from_part[index].position) @ part_from_assembly.T, faces, process=False)
+        for vertices, faces in near]) if near else trimesh.Trimesh()
 
 
 def solid_meshes(meshes: list[trimesh.Trimesh], wheres: list[str],

@@ -71,17 +71,20 @@ def sheet_gaps(piece: trimesh.Trimesh, normal: np.ndarray, neighbours: trimesh.T
                seed: int = 0) -> tuple[float, float]:
     """How far a one-surface board ``piece`` may grow on each side before it meets a neighbour: the nearest hit
     of rays cast from points on it (``SHEET_RAY_COUNT``, sampled with ``seed``) along ``+normal`` and
-    ``-normal`` into ``neighbours`` (the other parts, in the piece's frame and unit), inf on a side where none is
-    nearer than ``reach``; 0 where a neighbour touches the face or cuts through it."""
+    ``-normal`` into the faces of ``neighbours`` (the other parts, in the piece's frame and unit, their faces
+    turned outwards) that face the board (within 60 degrees: where a ray enters a neighbour; a face it grazes or
+    leaves by is no obstacle), inf on a side where none is nearer than ``reach``; 0 where a neighbour touches the
+    board's face."""
     points, _ = trimesh.sample.sample_surface(piece, SHEET_RAY_COUNT, seed=seed)
-    points = np.concatenate([points, np.asarray(piece.vertices)])
     gaps = []
     for direction in (normal, -normal):
         back = SHEET_TOUCH_M * 2  # cast from just behind the face, so that a neighbour lying on it is hit
         origins = points - direction * back
         directions = np.broadcast_to(direction, origins.shape)
-        locations, rays, _ = neighbours.ray.intersects_location(origins, directions, multiple_hits=True)
-        along = np.einsum("ij,j->i", locations - origins[rays], direction) - back if len(rays) else np.zeros(0)
+        locations, rays, faces = neighbours.ray.intersects_location(origins, directions, multiple_hits=True)
+        locations = np.asarray(locations, dtype=np.float64).reshape(-1, 3)
+        facing = neighbours.face_normals[np.asarray(faces, dtype=np.int64)] @ direction < -0.5
+        along = (locations[facing] - origins[np.asarray(rays, dtype=np.int64)[facing]]) @ direction - back
         near = along[along <= reach]
         gaps.append(max(float(near.min()), 0.0) if len(near) else float("inf"))
     return gaps[0], gaps[1]
