@@ -54,10 +54,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "wood; honeycomb board about 300, MDF 750, aluminium 2700)")
     parser.add_argument("--masses", metavar="FILE_OR_JSON", help=MASSES_HELP)
     parser.add_argument("--sheet-thickness", type=float, default=3.0, metavar="MM",
-                        help="thickness given to a part drawn as one surface (a board without thickness), grown "
-                        "away from the assembly's centre with --poses, else behind its drawn face (default 3 mm, a "
-                        "hardboard back panel); with --poses, a board touched on neither face grows instead to meet "
-                        "a part up to 60 mm beside it")
+                        help="thickness given to a part drawn as one surface (a board without thickness) where no "
+                        "part up to 60 mm beside it gives its thickness (with --poses: it grows to meet such a part, "
+                        "else away from a part touching it or from the assembly's centre; without: behind its drawn "
+                        "face); default 3 mm, a hardboard back panel")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="seconds of kitting and motion planning per build (standing, then upside down) before "
                         "the planner stops trying other placements of the jig (default 300)")

@@ -14,10 +14,11 @@ face outwards for grasps), so :func:`intake_mesh` makes one, in the part's own f
 3. Each connected piece on its own:
 
    - a *single-surface board* (an open piece thinner than ``sheet_max_thickness``, 1 mm) becomes a board: its
-     faces extruded. Where the other parts are placed around it (``neighbours``), it grows away from a part that
-     touches one face, ``sheet_thickness`` thick (3 mm, a hardboard back panel); where none touches it but one
-     stands within ``sheet_reach`` (60 mm) on one side, it grows to meet that part: a board drawn as one face of a
-     16 mm shelf regains its 16 mm (:func:`planning.mesh_surface.sheet_growth`). Otherwise ``sheet_thickness``
+     faces extruded. Where the other parts and the floor are placed around it (``neighbours``), it grows away
+     from a part that touches one face, to meet a part within ``sheet_reach`` (60 mm) on the other side, else
+     ``sheet_thickness`` thick (3 mm, a hardboard back panel); where no part touches it, to meet the nearer part
+     within reach: a board drawn as one face of a 16 mm shelf regains its 16 mm
+     (:func:`planning.mesh_surface.sheet_growth`). Otherwise ``sheet_thickness``
      on the side of ``outward`` (away from the assembly's centre) where that is known, else behind the drawn face
      (against the direction most of its face normals point: a surface is drawn as seen from outside);
    - any other open piece has its holes closed with fans of triangles

@@ -92,14 +92,15 @@ def sheet_gaps(piece: trimesh.Trimesh, normal: np.ndarray, neighbours: trimesh.T
 
 def sheet_growth(gaps: tuple[float, float], thickness: float) -> tuple[float, float] | None:
     """Which side (+1 along the normal, -1 against it) and how thick a one-surface board grows, from its
-    :func:`sheet_gaps`: where a neighbour touches one side, ``thickness`` on the other side (less where another
-    part stands nearer there); where neither side is touched but a neighbour stands within reach, up to that
-    neighbour (the board fills the gap it was drawn beside: its real thickness). None where neither rule
-    decides (nothing within reach, or both sides touched): the caller's default."""
+    :func:`sheet_gaps`: away from a neighbour that touches one face, up to a neighbour within reach on the other
+    side (the board fills the gap between them: a bottom drawn on the floor, under the sides standing on it), else
+    ``thickness``; where neither face is touched, up to the nearer neighbour within reach (a shelf drawn as its
+    top face, above the pins it rests on). None where neither rule decides (nothing within reach, or both faces
+    touched): the caller's default."""
     touched = [gap <= SHEET_TOUCH_M for gap in gaps]
     if touched[0] != touched[1]:
         free = 1 if touched[0] else 0
-        return (1.0 if free == 0 else -1.0), min(thickness, gaps[free])
+        return (1.0 if free == 0 else -1.0), (gaps[free] if gaps[free] < float("inf") else thickness)
     if not any(touched) and min(gaps) < float("inf"):
         near = int(np.argmin(gaps))
         return (1.0 if near == 0 else -1.0), gaps[near]

@@ -138,17 +138,20 @@ def test_a_one_surface_board_meets_the_part_it_was_drawn_beside(tmp_path, gap_mm
     assert ("grew 1 of them to meet the part beside them" in fixes) == (gap_mm < 60)
 
 
-@pytest.mark.parametrize("drawn_at_mm, bottom_mm", [(0.0, (0.0, 3.0)), (16.0, (0.0, 16.0))])
-def test_a_bottom_board_drawn_as_one_surface_stays_on_the_floor(tmp_path, drawn_at_mm, bottom_mm):
+@pytest.mark.parametrize("drawn_at_mm, side_on_it, bottom_mm", [(0.0, False, (0.0, 3.0)), (16.0, False, (0.0, 16.0)),
+                                                             (0.0, True, (0.0, 16.0))])
+def test_a_bottom_board_drawn_as_one_surface_stays_on_the_floor(tmp_path, drawn_at_mm, side_on_it, bottom_mm):
     """The bottom of a cabinet drawn as one face: on the floor (its underside), it grows up, not through the
-    floor; drawn 16 mm up (its top face), it grows down to the floor."""
+    floor: 3 mm, or up to the side standing on it 16 mm up; drawn 16 mm up (its top face), it grows down to the
+    floor."""
     from planning.assembly import Assembly, AssemblyPart, write_assembly
     from planning.pose import Pose
 
     side = trimesh.creation.box([0.018, 0.3, 0.4])
     face = trimesh.Trimesh([[-0.2, -0.15, 0], [0.2, -0.15, 0], [0.2, 0.15, 0], [-0.2, 0.15, 0]],
                            [[0, 1, 2], [0, 2, 3]], process=False)
-    parts = [AssemblyPart("side", side, Pose([0.209, 0, 0.2], [1, 0, 0, 0])),
+    side_pose = Pose([0.191, 0, 0.216], [1, 0, 0, 0]) if side_on_it else Pose([0.209, 0, 0.2], [1, 0, 0, 0])
+    parts = [AssemblyPart("side", side, side_pose),
              AssemblyPart("bottom", face, Pose([0, 0, drawn_at_mm / 1000.0], [1, 0, 0, 0]))]
     assembly = read_assembly(write_assembly(Assembly("cabinet", parts), tmp_path / "cabinet"))
     bottom = assembly.part("bottom")
