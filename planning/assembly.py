@@ -165,17 +165,28 @@ def neighbours_in_part_frame(meshes: list[trimesh.Trimesh], assembly_from_part: 
     bounds come within ``reach_m`` of its own (their faces turned outwards, :func:`_outward_faces`), and the floor
     (the plane z = 0 of the assembly frame, as a slab under the part) where the part comes within ``reach_m`` of
     it."""
-    placed = [pose.apply(np.asarray(m.vertices)) for m, pose in zip(meshes, assembly_from_part)]
-    low, high = placed[index].min(axis=0) - reach_m, placed[index].max(axis=0) + reach_m
-    near = [(vertices, _outward_faces(meshes[k])) for k, vertices in enumerate(placed)
-            if k != index and np.all(vertices.max(axis=0) >= low) and np.all(vertices.min(axis=0) <= high)]
+    def assembly_bounds(k: int) -> np.ndarray:  # (2, 3) of the mesh's bounding box's corners, placed
+        corners = trimesh.bounds.corners(meshes[k].bounds)
+        placed = assembly_from_part[k].apply(corners)
+        return np.stack([placed.min(axis=0), placed.max(axis=0)])
+
+    own = assembly_bounds(index)
+    low, high = own[0] - reach_m, own[1] + reach_m
+    rotation_t, position = assembly_from_part[index].rotation.T, assembly_from_part[index].position
+    near = []
+    for k, mesh in enumerate(meshes):
+        bounds = assembly_bounds(k) if k != index else None
+        if bounds is None or np.any(bounds[1] < low) or np.any(bounds[0] > high):
+            continue
+        rotation = rotation_t @ assembly_from_part[k].rotation  # part k's frame to part index's
+        offset = rotation_t @ (assembly_from_part[k].position - position)
+        near.append(trimesh.Trimesh(np.asarray(mesh.vertices) @ rotation.T + offset, _outward_faces(mesh),
+                                    process=False))
     if low[2] <= 0.0:
         floor = trimesh.creation.box(bounds=[[low[0], low[1], -reach_m], [high[0], high[1], 0.0]])
-        near.append((np.asarray(floor.vertices), np.asarray(floor.faces)))
-    part_from_assembly = assembly_from_part[index].rotation.T
-    return trimesh.util.concatenate([
-        trimesh.Trimesh((vertices - assembly_from_part[index].position) @ part_from_assembly.T, faces, process=False)
-        for vertices, faces in near]) if near else trimesh.Trimesh()
+        near.append(trimesh.Trimesh((np.asarray(floor.vertices) - position) @ rotation_t.T, floor.faces,
+                                    process=False))
+    return trimesh.util.concatenate(near) if near else trimesh.Trimesh()
 
 
 def solid_meshes(meshes: list[trimesh.Trimesh], wheres: list[str],

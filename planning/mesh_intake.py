@@ -40,6 +40,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 import trimesh
@@ -298,7 +299,8 @@ def intake_mesh(mesh: trimesh.Trimesh, name: str, sheet_thickness: float = DEFAU
     unit_outward = None
     if outward is not None and np.linalg.norm(outward) > 0:
         unit_outward = np.asarray(outward, dtype=np.float64) / np.linalg.norm(outward)
-    sheet = _SheetSettings(sheet_thickness, sheet_max_thickness, sheet_reach, unit_outward, neighbours)
+    sheet = _SheetSettings(sheet_thickness, sheet_max_thickness, sheet_reach, unit_outward,
+                           None if neighbours is None else cache(neighbours))  # placed once, for any board
     solids = []
     for group in groups:
         piece = cleaned.submesh([group], append=True, repair=False)

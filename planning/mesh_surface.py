@@ -67,6 +67,16 @@ SHEET_TOUCH_M = 0.0005
 SHEET_RAY_COUNT = 256
 
 
+def _faces_within(mesh: trimesh.Trimesh, bounds: np.ndarray, margin: float) -> trimesh.Trimesh:
+    """The faces of ``mesh`` whose bounds come within ``margin`` of ``bounds`` (2, 3), as a mesh of their own: a
+    ray query then indexes only them (indexing a whole assembly's faces takes about a second)."""
+    triangles = np.asarray(mesh.triangles)
+    near = (np.all(triangles.max(axis=1) >= bounds[0] - margin, axis=1)
+            & np.all(triangles.min(axis=1) <= bounds[1] + margin, axis=1))
+    return trimesh.Trimesh(triangles[near].reshape(-1, 3), np.arange(3 * int(near.sum())).reshape(-1, 3),
+                           process=False)
+
+
 def sheet_gaps(piece: trimesh.Trimesh, normal: np.ndarray, neighbours: trimesh.Trimesh, reach: float,
                seed: int = 0) -> tuple[float, float]:
     """How far a one-surface board ``piece`` may grow on each side before it meets a neighbour: the nearest hit
@@ -76,11 +86,15 @@ def sheet_gaps(piece: trimesh.Trimesh, normal: np.ndarray, neighbours: trimesh.T
     leaves by is no obstacle), inf on a side where none is nearer than ``reach``; 0 where a neighbour touches the
     board's face."""
     points, _ = trimesh.sample.sample_surface(piece, SHEET_RAY_COUNT, seed=seed)
+    neighbours = _faces_within(neighbours, piece.bounds, reach + SHEET_TOUCH_M * 2)
     gaps = []
     for direction in (normal, -normal):
         back = SHEET_TOUCH_M * 2  # cast from just behind the face, so that a neighbour lying on it is hit
         origins = points - direction * back
         directions = np.broadcast_to(direction, origins.shape)
+        if not len(neighbours.faces):
+            gaps.append(float("inf"))
+            continue
         locations, rays, faces = neighbours.ray.intersects_location(origins, directions, multiple_hits=True)
         locations = np.asarray(locations, dtype=np.float64).reshape(-1, 3)
         facing = neighbours.face_normals[np.asarray(faces, dtype=np.int64)] @ direction < -0.5
