@@ -150,8 +150,9 @@ def outward_directions(meshes: list[trimesh.Trimesh], assembly_from_part: list[P
 
 
 def _outward_faces(mesh: trimesh.Trimesh) -> np.ndarray:
-    """``mesh``'s faces, reversed where it encloses a negative volume (drawn inside-out): what a ray enters it by
-    faces it (an open or mixed mesh keeps its faces; rays then enter by the ones drawn right)."""
+    """``mesh``'s faces, all reversed where it encloses a negative volume (drawn inside-out), so that a ray enters
+    it through faces turned towards the ray (an open or mixed mesh keeps its faces: rays enter through those drawn
+    the right way)."""
     faces = np.asarray(mesh.faces)
     with np.errstate(all="ignore"):
         volume = float(trimesh.triangles.mass_properties(mesh.triangles, skip_inertia=True).volume)
@@ -175,8 +176,10 @@ def neighbours_in_part_frame(meshes: list[trimesh.Trimesh], assembly_from_part: 
     rotation_t, position = assembly_from_part[index].rotation.T, assembly_from_part[index].position
     near = []
     for k, mesh in enumerate(meshes):
-        bounds = assembly_bounds(k) if k != index else None
-        if bounds is None or np.any(bounds[1] < low) or np.any(bounds[0] > high):
+        if k == index:
+            continue
+        bounds = assembly_bounds(k)
+        if np.any(bounds[1] < low) or np.any(bounds[0] > high):
             continue
         rotation = rotation_t @ assembly_from_part[k].rotation  # part k's frame to part index's
         offset = rotation_t @ (assembly_from_part[k].position - position)
