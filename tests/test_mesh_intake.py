@@ -254,6 +254,22 @@ def test_a_broken_real_object_is_sequenced(tmp_path):
     assert result.success, result.reason
 
 
+def test_a_real_bookcase_of_one_surface_boards_keeps_its_thickness_and_order(tmp_path):
+    """Every board of a real 16 mm bookcase drawn as one surface: the bottom, drawn as its underside on the floor,
+    grows up to the sides standing on it, and the top, drawn as its upper face, down to them (their 16.3 mm back);
+    the sides and shelves, touched on one face, grow 3 mm; the planner finds an order (with 3 mm everywhere, the
+    sides stood 13 mm above the bottom and nothing was placeable)."""
+    from planning.sequence import plan_assembly_sequence
+
+    intact = {name: mesh.volume for name, mesh in _real_meshes("bookcase_expedit_0385")}
+    assembly = read_assembly(_broken_copy("bookcase_expedit_0385", "one_surface", tmp_path / "boards"))
+    for name in ("part_00", "part_03"):  # top and bottom
+        assert assembly.part(name).mesh.volume == pytest.approx(intact[name], rel=0.01), name
+        assert "grew 1 of them to meet the part beside them" in assembly.mesh_intake[name]["fixes"]
+    result = plan_assembly_sequence(assembly, seed=0, time_budget_s=10.0)
+    assert result.success, result.reason
+
+
 def test_a_real_chair_cut_in_two_is_sequenced_for_the_cell(tmp_path):
     """Every part of a real chair cut in two loose pieces (a 1 mm slice missing, the second inside-out): its two
     leg frames, crossed at a joint, are closed and kept whole, and their convex pieces then overlap there by more
