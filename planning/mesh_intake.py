@@ -278,8 +278,8 @@ def intake_mesh(mesh: trimesh.Trimesh, name: str, sheet_thickness: float = DEFAU
     ``part 'leg_1'``). ``mesh``: the part's mesh in its own frame;
     ``sheet_thickness``, ``sheet_max_thickness`` and ``sheet_reach`` in the mesh's unit; ``outward``: (3,) a
     direction in the part frame pointing away from the assembly's centre, or None; ``neighbours``: a function giving
-    the other parts' meshes as given, placed in this part's frame (called once per one-surface board), or None
-    (both for the side a one-surface board grows to and how thick).
+    the other parts' meshes as given, placed in this part's frame (called once, at the first one-surface board), or
+    None (both for the side a one-surface board grows to and how thick).
     Raises :class:`MeshIntakeError` when no solid can be made."""
     volume_before = _signed_volume(mesh) if len(mesh.faces) else 0.0
     if is_solid(mesh):

@@ -85,16 +85,15 @@ def sheet_gaps(piece: trimesh.Trimesh, normal: np.ndarray, neighbours: trimesh.T
     turned outwards) that face the board (within 60 degrees: where a ray enters a neighbour; a face it grazes or
     leaves by is no obstacle), inf on a side where none is nearer than ``reach``; 0 where a neighbour touches the
     board's face."""
+    back = SHEET_TOUCH_M * 2  # rays start just behind the face, so that a neighbour lying on it is hit
+    neighbours = _faces_within(neighbours, piece.bounds, reach + back)
+    if not len(neighbours.faces):
+        return float("inf"), float("inf")
     points, _ = trimesh.sample.sample_surface(piece, SHEET_RAY_COUNT, seed=seed)
-    neighbours = _faces_within(neighbours, piece.bounds, reach + SHEET_TOUCH_M * 2)
     gaps = []
     for direction in (normal, -normal):
-        back = SHEET_TOUCH_M * 2  # cast from just behind the face, so that a neighbour lying on it is hit
         origins = points - direction * back
         directions = np.broadcast_to(direction, origins.shape)
-        if not len(neighbours.faces):
-            gaps.append(float("inf"))
-            continue
         locations, rays, faces = neighbours.ray.intersects_location(origins, directions, multiple_hits=True)
         locations = np.asarray(locations, dtype=np.float64).reshape(-1, 3)
         facing = neighbours.face_normals[np.asarray(faces, dtype=np.int64)] @ direction < -0.5
