@@ -39,7 +39,17 @@ import trimesh
 
 from planning.grasp import APPROACH_M, Grasp, feasible_grasps, grasp_pose_key
 from planning.gripper import MAX_OPENING_M, clearance_gripper
-from planning.pedestal import Pedestal, chocks_for, cradle_chocks, cut_back, pedestal_for, standing_lean_m, top_box
+from planning.pedestal import (
+    Pedestal,
+    chocks_for,
+    cradle_chocks,
+    cut_back,
+    pedestal_for,
+    posts_under,
+    standing_lean_m,
+    top_box,
+    top_boxes,
+)
 from planning.pose import Pose
 from planning.stability import SUPPORT_MARGIN_M, centre_of_mass, rests_stably, stable_rest_poses, upright_rest_pose
 
@@ -385,6 +395,7 @@ class _Layout:
         self.tried: set[str] = set()  # parts for which some place was tried
         self.picked: set[str] = set()  # parts that some place tried lets the hand grasp clear of their support
         self.fingers_freed: set[tuple] = set()  # (part, rest pose) whose pedestal :meth:`_free_fingers` checked
+        self.posts_tried: set[tuple] = set()  # (part, rest pose) that :meth:`_onto_posts` tried
 
     def rank(self, name: str) -> int:
         return self.order.index(name)
@@ -437,23 +448,72 @@ class _Layout:
                     pose_grasps = self._leaning_grasps(name, rest_from_part, grasps) + list(grasps)
                 places = (self._stack_places(name, rest_from_part) if attempt == "stack"
                           else self._ground_places(name, rest_from_part))
-                tried, failed = 0, []  # (centre_xy, heading of the rest frame's x axis) of the places that failed
-                for world_from_rest, corners, pedestal, base in places:
-                    xy, heading = world_from_rest.position[:2], world_from_rest.rotation[:2, 0]
-                    if any(np.linalg.norm(xy - f) < PLACE_SPACING_M and heading @ h > 0.0 for f, h in failed):
-                        continue  # next to a place that failed, turned alike: most likely fails for the same reason
-                    tried += 1
-                    if tried > MAX_PLACES_PER_POSE:
-                        break
-                    failed.append((xy, heading))
-                    found = self._try(name, mesh, pose_grasps, grasp_ok_at_target, world_from_rest @ Pose.from_matrix(
-                        rest_from_part), corners, pedestal, base, probability)
-                    if found is not None:
-                        slot, mine, surviving = found
-                        self.options.update(surviving)
-                        self.options[name] = mine
-                        return slot
+                slot = self._first_place(name, mesh, pose_grasps, grasp_ok_at_target, rest_from_part, places,
+                                         probability)
+                if slot is None and attempt == "ground" and self._onto_posts(name, rest_from_part, pose_grasps,
+                                                                             grasp_ok_at_target):
+                    slot = self._first_place(name, mesh, pose_grasps, grasp_ok_at_target, rest_from_part,
+                                             self._ground_places(name, rest_from_part), probability)
+                if slot is not None:
+                    return slot
         return None
+
+    def _first_place(self, name: str, mesh: trimesh.Trimesh, grasps: list[Grasp], grasp_ok_at_target,
+                     rest_from_part: np.ndarray, places, probability: float) -> KittingSlot | None:
+        """The slot at the first of ``places`` (``_stack_places`` or ``_ground_places`` of this rest pose) where
+        :meth:`_try` finds one, its options recorded; at most :data:`MAX_PLACES_PER_POSE` tried; None if none."""
+        tried, failed = 0, []  # (centre_xy, heading of the rest frame's x axis) of the places that failed
+        for world_from_rest, corners, pedestal, base in places:
+            xy, heading = world_from_rest.position[:2], world_from_rest.rotation[:2, 0]
+            if any(np.linalg.norm(xy - f) < PLACE_SPACING_M and heading @ h > 0.0 for f, h in failed):
+                continue  # next to a place that failed, turned alike: most likely fails for the same reason
+            tried += 1
+            if tried > MAX_PLACES_PER_POSE:
+                break
+            failed.append((xy, heading))
+            found = self._try(name, mesh, grasps, grasp_ok_at_target, world_from_rest @ Pose.from_matrix(
+                rest_from_part), corners, pedestal, base, probability)
+            if found is not None:
+                slot, mine, surviving = found
+                self.options.update(surviving)
+                self.options[name] = mine
+                return slot
+        return None
+
+    def _onto_posts(self, name: str, rest_from_part: np.ndarray, grasps: Sequence[Grasp],
+                    grasp_ok_at_target) -> bool:
+        """Whether the part, having found no place on its pedestal in this rest pose, now lies on posts
+        (:func:`planning.pedestal.posts_under`; the pedestal for this pose replaced): a narrow part bent along its
+        length, on which more of ``grasps`` that work at the target clear the posts than the pedestal, and which
+        rests on them (the physics check, else the geometric one). Tried once per part and pose, and only
+        after every place tried on the pedestal failed: a part that lies on its pedestal in its first pose tried
+        keeps it."""
+        key = (name, np.round(rest_from_part, 9).tobytes())
+        pedestal = self.support_cache.get(key)
+        if pedestal is None or pedestal.posts or key in self.posts_tried:
+            return False
+        self.posts_tried.add(key)
+        mesh = self.meshes[name]
+        posts = posts_under(mesh, rest_from_part, self.area.pedestal_height_m)
+        if posts is None:
+            return False
+        if pedestal.chocks:  # the same chocks cradle it (a round bar rolls on posts as on a box)
+            posts_from_pedestal = posts.world_from_pedestal.inverse() @ pedestal.world_from_pedestal
+            posts = dataclasses.replace(posts, chocks=tuple((size, posts_from_pedestal @ pose)
+                                                            for size, pose in pedestal.chocks))
+
+        def usable(support: Pedestal) -> int:
+            return sum(self._usable_at_target(name, g, grasp_ok_at_target)
+                       for g in self._clear_of(grasps, rest_from_part, support))
+
+        if usable(posts) <= usable(pedestal):
+            return False
+        if not (self._rests(name, [(mesh, Pose.from_matrix(rest_from_part))], self._fixed(posts))
+                if self.rests is not None else
+                rests_stably(mesh, rest_from_part, [_box_corners(lo, hi) for lo, hi in top_boxes(posts)])):
+            return False
+        self.support_cache[key] = posts
+        return True
 
     def _ground_poses(self, name: str, poses: list[tuple[np.ndarray, float]]) -> list[tuple[np.ndarray, float]]:
         """The rest poses (rest_from_part, probability) in which the part rests on its pedestal as the geometry

@@ -1,6 +1,7 @@
 """What a part lies on in the kit: a pedestal, a box on the table inset from the part's footprint so that the
 fingers reach under its edge (as the jig's pads, :mod:`planning.fixture`), and for a part that would roll or that
-stands on its edge, chocks: posts beside its ends that cradle it.
+stands on its edge, chocks: posts beside its ends that cradle it. A narrow part bent along its length (a curved
+rail) may lie on posts instead, one under each end and one under its middle, that follow it.
 
 Frames: a pedestal's box centre is ``world_from_pedestal`` (world frame, metres, +z up); its chocks are posed in
 the pedestal's frame; the part lies in a *rest* frame (:mod:`planning.stability`) whose x-y plane is the
@@ -35,6 +36,9 @@ CHOCK_TALL_FRACTION = 0.25  # ... with chocks rising at most this fraction of it
 CHOCK_CONTACT_SLOP_M = 0.0003  # a part between chocks moves this much farther than their clearance: the simulated
 # part is inset by 0.25 mm (half the joint clearance) and sinks about 0.05 mm into a contact
 ELONGATED_RATIO = 2.0  # only a footprint at least this many times longer than wide is cradled
+POST_LENGTH_M = 0.02  # a post under a bent bar: its extent along the bar ...
+POST_END_INSET_M = 0.01  # ... the end posts' centres this far inside the bar's ends beyond half that length
+POST_TOUCH_M = 0.001  # a post is put only where the bar's underside comes within this of the posts' tops
 _PEDESTAL_MESHES: dict[tuple, trimesh.Trimesh] = {}
 _PEDESTAL_MESHES_KEPT = 512
 
@@ -43,21 +47,24 @@ _PEDESTAL_MESHES_KEPT = 512
 class Pedestal:
     """A box standing on the table under a part (``size_m``, its centre at ``world_from_pedestal``), and for a
     part that would roll (a round leg), chocks: posts beside both ends of the part, from the table to a little
-    above the pedestal's top, that cradle it (``chocks``: (size, pedestal_from_chock) per post, box centres)."""
+    above the pedestal's top, that cradle it (``chocks``: (size, pedestal_from_chock) per post, box centres).
+    ``posts``: further boxes as tall as the pedestal, their tops level with its top, that the part lies on too
+    (same form as ``chocks``; :func:`posts_under`)."""
 
     size_m: tuple[float, float, float]
     world_from_pedestal: Pose  # box centre
     chocks: tuple[tuple[tuple[float, float, float], Pose], ...] = ()
+    posts: tuple[tuple[tuple[float, float, float], Pose], ...] = ()
 
     def mesh(self) -> trimesh.Trimesh:
-        """The pedestal and its chocks (separate boxes; pedestal frame, metres). Pedestals of the same shape share
-        one mesh (kitting asks for it thousands of times): do not modify it."""
-        key = (tuple(self.size_m), tuple((tuple(size), pose.position.tobytes(), pose.quat_wxyz.tobytes())
-                                         for size, pose in self.chocks))
+        """The pedestal, its posts and its chocks (separate boxes; pedestal frame, metres). Pedestals of the same
+        shape share one mesh (kitting asks for it thousands of times): do not modify it."""
+        key = (tuple(self.size_m), *(tuple((tuple(size), pose.position.tobytes(), pose.quat_wxyz.tobytes())
+                                           for size, pose in boxes) for boxes in (self.chocks, self.posts)))
         mesh = _PEDESTAL_MESHES.get(key)
         if mesh is None:
             boxes = [trimesh.creation.box(self.size_m)]
-            boxes += [trimesh.creation.box(size, transform=pose.matrix()) for size, pose in self.chocks]
+            boxes += [trimesh.creation.box(size, transform=pose.matrix()) for size, pose in self.posts + self.chocks]
             mesh = trimesh.util.concatenate(boxes) if len(boxes) > 1 else boxes[0]
             if len(_PEDESTAL_MESHES) >= _PEDESTAL_MESHES_KEPT:
                 _PEDESTAL_MESHES.pop(next(iter(_PEDESTAL_MESHES)))
@@ -217,7 +224,54 @@ def cut_back(pedestal: Pedestal, side: tuple[int, int], cut_m: float) -> Pedesta
                                @ Pose(shift, [1.0, 0.0, 0.0, 0.0]))
 
 
+def top_boxes(pedestal: Pedestal) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(min, max) x-y corners of the pedestal's top and of each of its posts' tops, in the frame it is posed in
+    (unrotated about z)."""
+    out = []
+    for size, pose in [(pedestal.size_m, Pose([0, 0, 0], [1, 0, 0, 0])), *pedestal.posts]:
+        centre, half = pedestal.world_from_pedestal.position[:2] + pose.position[:2], 0.5 * np.array(size[:2])
+        out.append((centre - half, centre + half))
+    return out
+
+
 def top_box(pedestal: Pedestal) -> tuple[np.ndarray, np.ndarray]:
-    """(min, max) x-y corners of the pedestal's top, in the frame it is posed in (unrotated about z)."""
-    centre, half = pedestal.world_from_pedestal.position[:2], 0.5 * np.array(pedestal.size_m[:2])
-    return centre - half, centre + half
+    """(min, max) x-y corners of the box around the pedestal's top (and its posts' tops), in the frame it is posed
+    in (unrotated about z)."""
+    boxes = top_boxes(pedestal)
+    return np.min([lo for lo, _ in boxes], axis=0), np.max([hi for _, hi in boxes], axis=0)
+
+
+def posts_under(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: float) -> Pedestal | None:
+    """A pedestal of posts (rest frame, its tops at z = 0) for a narrow elongated part lying in its rest pose: a
+    post :data:`POST_LENGTH_M` long under each end and under its centre of mass, each under the part's
+    cross-section there (as wide as it less :data:`NARROW_INSET_M` each side, at least
+    :data:`NARROW_MIN_WIDTH_M`), where its underside comes down to the posts' top. A bar bent along its length (a
+    curved chair rail) lies on them with its sides free for the fingers all along, where the one box under its
+    footprint stands out beside it. None when the part is not narrow and elongated, or fewer than two posts touch
+    it. Whether it rests on them is the caller's to check."""
+    rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
+    span = rested.max(axis=0) - rested.min(axis=0)
+    along = 0 if span[0] >= span[1] else 1
+    across = 1 - along
+    if span[along] < ELONGATED_RATIO * span[across] or span[across] >= NARROW_PART_M:
+        return None
+    com_along = float((rest_from_part[:3, :3] @ centre_of_mass(mesh) + rest_from_part[:3, 3])[along])
+    first = rested[:, along].min() + 0.5 * POST_LENGTH_M + POST_END_INSET_M
+    last = rested[:, along].max() - 0.5 * POST_LENGTH_M - POST_END_INSET_M
+    boxes = []
+    for at in sorted({first, float(np.clip(com_along, first, last)), last}):
+        section = _section_below(mesh, rest_from_part, along, at, np.inf)
+        if len(section) == 0 or section[:, 2].min() > POST_TOUCH_M:
+            continue  # the part does not come down to the posts here
+        lo, hi = section[:, across].min(), section[:, across].max()
+        width = max(hi - lo - 2.0 * NARROW_INSET_M, min(hi - lo, NARROW_MIN_WIDTH_M))
+        centre, size = np.zeros(3), np.zeros(3)
+        centre[along], centre[across] = at, 0.5 * (lo + hi)
+        size[along], size[across], size[2] = POST_LENGTH_M, width, height_m
+        boxes.append((centre, tuple(float(v) for v in size)))
+    if len(boxes) < 2:
+        return None
+    (main_centre, main_size), others = boxes[0], boxes[1:]
+    world_from_pedestal = Pose([main_centre[0], main_centre[1], -0.5 * height_m], [1.0, 0.0, 0.0, 0.0])
+    posts = tuple((size, Pose(centre - main_centre, [1.0, 0.0, 0.0, 0.0])) for centre, size in others)
+    return Pedestal(main_size, world_from_pedestal, posts=posts)

@@ -95,14 +95,16 @@ def touching_points(mesh: trimesh.Trimesh, rest_from_part: np.ndarray,
     return np.concatenate(pieces)
 
 
-def rests_stably(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, support_rest_xy: np.ndarray,
+def rests_stably(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, support_rest_xy: np.ndarray | list[np.ndarray],
                  margin_m: float = SUPPORT_MARGIN_M) -> bool:
     """Whether the part, lying in its rest pose (rest frame: lowest point at z = 0), stands on a support whose top
     is the convex polygon ``support_rest_xy`` (rest frame x-y, at z = 0): the points where it touches the
     support surround its centre of mass with ``margin_m`` to spare, more for a high centre of mass (it must
     survive a tilt of :data:`TIP_ANGLE_DEG`). (A stable pose of the part's hull is not
-    enough on a pedestal inset from the footprint, nor for parts whose underside is not flat.)"""
-    touching = touching_points(mesh, rest_from_part, support_rest_xy)
+    enough on a pedestal inset from the footprint, nor for parts whose underside is not flat.) A support of several
+    tops (posts) is a sequence of such polygons: the part's points on any of them hold it."""
+    outlines = [support_rest_xy] if np.ndim(support_rest_xy) == 2 else list(support_rest_xy)
+    touching = np.concatenate([touching_points(mesh, rest_from_part, outline) for outline in outlines])
     if len(touching) < 3:
         return False
     from scipy.spatial import ConvexHull, QhullError

@@ -200,18 +200,22 @@ def test_a_round_leg_would_roll_off_a_pedestal_and_is_cradled_by_chocks():
 
 
 def _bent_bar(radius_m: float = 0.4, half_angle_rad: float = np.radians(20.0), half_width_m: float = 0.006,
-              rings: int = 25) -> trimesh.Trimesh:
-    """A bar of square section 12 mm wide bent along an arc in the x-y plane (28 cm long, bowed 2.4 cm)."""
+              rings: int = 25, sides: int = 4) -> trimesh.Trimesh:
+    """A bar bent along an arc in the x-y plane (28 cm long, bowed 2.4 cm) of square section 12 mm wide, or with
+    more ``sides`` a round one 12 mm across."""
     vertices = []
+    radius = half_width_m * (np.sqrt(2.0) if sides == 4 else 1.0)
     for angle in np.linspace(-half_angle_rad, half_angle_rad, rings):
         centre = np.array([radius_m * np.sin(angle), radius_m * (np.cos(angle) - 1.0), 0.0])
         outwards = np.array([np.sin(angle), np.cos(angle), 0.0])
-        for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
-            vertices.append(centre + half_width_m * (a * outwards + b * np.array([0.0, 0.0, 1.0])))
-    faces = [[4 * i + k, 4 * i + (k + 1) % 4, 4 * (i + 1) + (k + 1) % 4] for i in range(rings - 1) for k in range(4)]
-    faces += [[4 * i + k, 4 * (i + 1) + (k + 1) % 4, 4 * (i + 1) + k] for i in range(rings - 1) for k in range(4)]
-    last = 4 * (rings - 1)
-    faces += [[0, 2, 1], [0, 3, 2], [last, last + 1, last + 2], [last, last + 2, last + 3]]
+        for k in range(sides):  # from below and inside the arc, as (-1, -1), (1, -1), (1, 1), (-1, 1) for a square
+            phi = np.pi * (1.25 + 2.0 * k / sides)
+            vertices.append(centre + radius * (np.cos(phi) * outwards + np.sin(phi) * np.array([0.0, 0.0, 1.0])))
+    n = sides
+    faces = [[n * i + k, n * i + (k + 1) % n, n * (i + 1) + (k + 1) % n] for i in range(rings - 1) for k in range(n)]
+    faces += [[n * i + k, n * (i + 1) + (k + 1) % n, n * (i + 1) + k] for i in range(rings - 1) for k in range(n)]
+    last = n * (rings - 1)
+    faces += [[0, k + 1, k] for k in range(1, n - 1)] + [[last, last + k, last + k + 1] for k in range(1, n - 1)]
     bar = trimesh.Trimesh(np.array(vertices), faces)
     trimesh.repair.fix_normals(bar)
     return bar
@@ -484,3 +488,40 @@ def test_a_part_standing_on_a_narrow_foot_is_not_picked_by_a_hand_coming_on_a_sl
     lying = Grasp(Pose([0.0, 0.0, 0.0], Rotation.from_matrix(on_edge.rotation.T @ world_tcp).as_quat(
         scalar_first=True)), width_m=0.0074, opening_m=0.0174, score=1.0, centroid_score=1.0, contact_score=1.0)
     assert not _tips_under(slat, on_edge)(lying)
+
+
+def test_a_bent_bar_lies_on_posts_that_leave_its_sides_free():
+    """A round rod bent along its length (28 cm, bowed 2.4 cm, 17 mm across, a chair's curved rail) lying flat:
+    the one box under its 41 mm wide footprint stands out beside the rod nearly all along it, so the fingers of few
+    grasps from above clear it. Where none of those works at the target, the rod lies on posts under its ends and
+    its middle instead, each under the rod, rests there (physics), and is picked by a grasp that the box kept
+    out."""
+    from cell.resting import PhysicsRestCheck
+    from planning.grasp import antipodal_grasps
+    from planning.kitting import _grasp_key, _rest_half
+    from planning.pedestal import pedestal_for, posts_under, top_boxes
+    from planning.stability import upright_rest_pose
+
+    bar, height = _bent_bar(half_width_m=0.0085, sides=16), AREA.pedestal_height_m
+    flat = upright_rest_pose(bar, np.eye(3))
+    posts = posts_under(bar, flat, height)
+    assert posts is not None and len(posts.posts) == 2
+    rested = bar.vertices @ flat[:3, :3].T + flat[:3, 3]
+    for lo, hi in top_boxes(posts):  # each post's top lies within the bar's cross-section above it
+        above = rested[(rested[:, 0] > lo[0] - 0.01) & (rested[:, 0] < hi[0] + 0.01), 1]
+        assert above.min() <= lo[1] and hi[1] <= above.max()
+    box = pedestal_for(_rest_half(bar, flat)[0], Pose([0, 0, 0], [1, 0, 0, 0]), height)
+    grasps = [g for g in antipodal_grasps(bar, np.random.default_rng(0)) if g.part_from_tcp.rotation[2, 2] < -0.9]
+    floor = (trimesh.creation.box((4.0, 4.0, 0.02)), Pose([0, 0, -height - 0.01], [1, 0, 0, 0]))
+    clear = {name: {_grasp_key(g) for g in clear_at_pick(grasps, Pose.from_matrix(flat), [
+        (support.mesh(), support.world_from_pedestal), floor], -height, HAND, approach_m=APPROACH_M)}
+        for name, support in (("box", box), ("posts", posts))}
+    assert len(clear["posts"]) >= 3 * max(len(clear["box"]), 1)
+    table = (trimesh.creation.box((4.0, 4.0, 0.02)), Pose([0, 0, -0.01], [1, 0, 0, 0]))
+    with PhysicsRestCheck() as check:
+        slot = plan_kitting(["bar"], [bar], {"bar": grasps}, lambda name, g: _grasp_key(g) not in clear["box"],
+                            AREA, rests=check, settles=check.settle, target_rotations={"bar": np.eye(3)})[0]
+        assert slot.pedestal.posts and slot.world_from_part.rotation[2, 2] > 0.999  # flat, on posts
+        assert check([(bar, slot.world_from_part)], [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal),
+                                                     table])
+        assert _grasp_key(slot.grasp) not in clear["box"]
