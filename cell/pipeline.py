@@ -394,6 +394,9 @@ class Pipeline:
         for slot in plan.slots:
             self.entries[slot.part]["kitting_world_from_part"] = pose_json(slot.world_from_part)
             self.entries[slot.part]["kitting_wedged"] = slot.wedged
+            # on a board (its pedestal None), else on its own pedestal or posts
+            self.entries[slot.part]["kitting_support"] = slot.rests_on or (
+                "posts" if slot.pedestal.posts else "pedestal")
             if slot.wedged:
                 from cell.resting import WEDGED_FORCE_RATIO
 

@@ -17,6 +17,7 @@
                 "grasp": {"part_from_tcp", "width_m", "opening_m", "pick_opening_m"}, "kitting_world_from_part",
                 "carry_check" (how its carry to the target was checked: cell.task.CARRY_CHECKS),
                 "kitting_wedged" (it lies wedged in the kit: no pose rests otherwise),
+                "kitting_support" (what it lies on in the kit: "pedestal", "posts", or the board's part name),
                 "final_world_from_part", "position_error_m", "rotation_error_deg", "within_tolerance"}, ...],
      "simulation": {...: what cell.simulate measured (contacts, limit violations, ...)}}
 
