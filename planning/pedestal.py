@@ -245,10 +245,11 @@ def posts_under(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: flo
     """A pedestal of posts (rest frame, its tops at z = 0) for a narrow elongated part lying in its rest pose: a
     post :data:`POST_LENGTH_M` long under each end and under its centre of mass, each under the part's
     cross-section there (as wide as it less :data:`NARROW_INSET_M` each side, at least
-    :data:`NARROW_MIN_WIDTH_M`), where its underside comes down to the posts' top. A bar bent along its length (a
-    curved chair rail) lies on them with its sides free for the fingers all along, where the one box under its
-    footprint stands out beside it. None when the part is not narrow and elongated, or fewer than two posts touch
-    it. Whether it rests on them is the caller's to check."""
+    :data:`NARROW_MIN_WIDTH_M`), where its underside comes down to the posts' top (an end post moves out to where
+    the part first touches down, for an arch). A bar bent along its length (a curved chair rail) lies on them with
+    its sides free for the fingers all along, where the one box under its footprint stands out beside it. None
+    when the part is not narrow and elongated, or fewer than two posts touch it. Whether it rests on them is the
+    caller's to check."""
     rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
     span = rested.max(axis=0) - rested.min(axis=0)
     along = 0 if span[0] >= span[1] else 1
@@ -256,19 +257,27 @@ def posts_under(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: flo
     if span[along] < ELONGATED_RATIO * span[across] or span[across] >= NARROW_PART_M:
         return None
     com_along = float((rest_from_part[:3, :3] @ centre_of_mass(mesh) + rest_from_part[:3, 3])[along])
-    first = rested[:, along].min() + 0.5 * POST_LENGTH_M + POST_END_INSET_M
-    last = rested[:, along].max() - 0.5 * POST_LENGTH_M - POST_END_INSET_M
-    boxes = []
-    for at in sorted({first, float(np.clip(com_along, first, last)), last}):
+    low = rested[rested[:, 2] <= POST_TOUCH_M, along]  # where its underside comes down to the posts' top
+    half = 0.5 * POST_LENGTH_M
+
+    def post_at(at: float):
+        """(centre, size) of the post centred ``at`` along the part, or None where the part does not touch it."""
         section = _section_below(mesh, rest_from_part, along, at, np.inf)
-        if len(section) == 0 or section[:, 2].min() > POST_TOUCH_M:
-            continue  # the part does not come down to the posts here
+        if len(section) == 0 or (section[:, 2].min() > POST_TOUCH_M and not np.any(np.abs(low - at) <= half)):
+            return None
         lo, hi = section[:, across].min(), section[:, across].max()
         width = max(hi - lo - 2.0 * NARROW_INSET_M, min(hi - lo, NARROW_MIN_WIDTH_M))
         centre, size = np.zeros(3), np.zeros(3)
         centre[along], centre[across] = at, 0.5 * (lo + hi)
         size[along], size[across], size[2] = POST_LENGTH_M, width, height_m
-        boxes.append((centre, tuple(float(v) for v in size)))
+        return centre, tuple(float(v) for v in size)
+
+    # the end posts inside the part's ends, or where it first comes down there (an arch stands on its very ends)
+    first = (rested[:, along].min() + half + POST_END_INSET_M, low.min() + half)
+    last = (rested[:, along].max() - half - POST_END_INSET_M, low.max() - half)
+    ends = [next((post for post in map(post_at, options) if post is not None), None) for options in (first, last)]
+    middle = post_at(float(np.clip(com_along, first[0], last[0])))
+    boxes = [post for post in (ends[0], middle, ends[1]) if post is not None]
     if len(boxes) < 2:
         return None
     (main_centre, main_size), others = boxes[0], boxes[1:]

@@ -525,3 +525,25 @@ def test_a_bent_bar_lies_on_posts_that_leave_its_sides_free():
         assert check([(bar, slot.world_from_part)], [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal),
                                                      table])
         assert _grasp_key(slot.grasp) not in clear["box"]
+
+
+def test_posts_are_only_for_narrow_elongated_parts_and_where_they_touch():
+    from planning.pedestal import posts_under, top_boxes
+    from planning.stability import upright_rest_pose
+
+    board = trimesh.creation.box((0.3, 0.2, 0.016))  # wide: its box pedestal serves
+    assert posts_under(board, upright_rest_pose(board, np.eye(3)), 0.12) is None
+    stub = trimesh.creation.box((0.05, 0.03, 0.03))  # not elongated
+    assert posts_under(stub, upright_rest_pose(stub, np.eye(3)), 0.12) is None
+    # a bar bent in its upright plane: as an arch it comes down to the posts at its very ends only, and stands on
+    # two posts there; as a rocker, only near its middle
+    for turn, arch in ((np.pi / 2, True), (-np.pi / 2, False)):
+        bar = _bent_bar(half_width_m=0.0085, sides=16)
+        bar.apply_transform(trimesh.transformations.rotation_matrix(turn, [1.0, 0.0, 0.0]))
+        posts = posts_under(bar, upright_rest_pose(bar, np.eye(3)), 0.12)
+        assert posts is not None
+        centres = [lo[0] + 0.01 for lo, _ in top_boxes(posts)]
+        if arch:
+            assert len(centres) == 2 and min(centres) < -0.12 and max(centres) > 0.12
+        else:
+            assert max(np.abs(centres)) < 0.03
