@@ -39,6 +39,7 @@ MAX_IMAGE_SIDE_PX = 4096
 MIN_IMAGE_SIDE_PX = IMAGE_SIZE_PX  # a smaller picture would be enlarged, adding no detail: refused
 LARGEST_PLAUSIBLE_PART_M = 3.0  # a furniture part longer than this is a unit mistake, not furniture
 SMALLEST_PLAUSIBLE_LARGEST_PART_M = 0.02  # an object whose largest part is shorter is a unit mistake, not furniture
+TYPICAL_LARGEST_PART_M = 0.5  # where two units give plausible sizes, the one nearer this (in ratio) is suggested first
 MIN_DENSITY_KG_M3 = 10.0  # lighter than the lightest foam: a value in g/cm3 (wood is 0.6 there) or a typo
 MAX_DENSITY_KG_M3 = 25000.0  # denser than any solid: a typo or a mass in grams, not a material
 
@@ -116,16 +117,22 @@ def _check_size(folder: Path, names: list[str], meshes: list[trimesh.Trimesh], u
     in_units = largest / UNIT_TO_METRES[units]  # the number in the files
     fitting = [u for u in ("m", "cm", "mm") if u != units
                and SMALLEST_PLAUSIBLE_LARGEST_PART_M <= in_units * UNIT_TO_METRES[u] <= LARGEST_PLAUSIBLE_PART_M]
+    # where two units fit (a 257 mm rail read as centimetres is a 2.57 m part), the likelier one first: its
+    # largest part nearer a typical one
+    fitting.sort(key=lambda u: abs(np.log(in_units * UNIT_TO_METRES[u] / TYPICAL_LARGEST_PART_M)))
     unit_words = {"m": "metres", "cm": "centimetres", "mm": "millimetres"}
+    hint = None
+    if fitting:
+        sizes = "; ".join(f"in {unit_words[u]} it is {in_units * UNIT_TO_METRES[u]:.3g} m" for u in fitting)
+        hint = (f"the files look like {unit_words[fitting[0]]}" + (f" ({sizes})" if len(fitting) > 1 else "")
+                + f": rerun with --units {fitting[0]}")
     if largest > LARGEST_PLAUSIBLE_PART_M:
-        hint = (f"the files look like {unit_words[fitting[0]]}: rerun with --units {fitting[0]}" if fitting
-                else "check the units of the files")
+        hint = hint or "check the units of the files"
         raise BadParts(f"{folder}: part {worst!r} is {in_units:g} {units} across, too large for furniture parts in "
                        f"{unit_words[units]}; {hint}")
     if largest < SMALLEST_PLAUSIBLE_LARGEST_PART_M:
-        hint = (f"the files look like {unit_words[fitting[0]]}: rerun with --units {fitting[0]}" if fitting
-                else "even read as metres (--units m, the largest unit) the parts are this small: scale the meshes "
-                "to the object's real size")
+        hint = hint or ("even read as metres (--units m, the largest unit) the parts are this small: scale the "
+                        "meshes to the object's real size")
         raise BadParts(f"{folder}: the largest part, {worst!r}, is {in_units:g} {units} across "
                        f"({largest * 1000:.3g} mm), too small for furniture parts in {unit_words[units]}; {hint}")
 

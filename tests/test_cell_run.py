@@ -230,6 +230,11 @@ def bad_inputs(tmp: Path, chair: Path) -> dict[str, tuple[list[str], str]]:
     cases["more than 20 parts"] = (["--parts", str(many), "--poses", poses], "21 parts, more than the 20")
     millimetres = _parts_folder(tmp / "mm", {"a": trimesh.creation.box([400.0, 300.0, 20.0])})
     cases["parts in millimetres"] = (["--parts", str(millimetres), "--poses", poses], "--units mm")
+    rail = _parts_folder(tmp / "rail", {"a": trimesh.creation.box([257.0, 40.0, 20.0])})  # 2.57 m in centimetres
+    cases["millimetres that would fit as centimetres"] = (
+        ["--parts", str(rail), "--poses", poses],
+        "the files look like millimetres (in millimetres it is 0.257 m; in centimetres it is 2.57 m): rerun with "
+        "--units mm")
     tiny = _parts_folder(tmp / "tiny", {"a": trimesh.creation.box([0.0004, 0.0003, 0.00002])})
     cases["parts a thousand times too small"] = (["--parts", str(tiny), "--poses", poses],
                                                  "is 0.0004 m across (0.4 mm), too small for furniture parts in "
