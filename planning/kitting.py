@@ -485,9 +485,9 @@ class _Layout:
         """Whether the part, having found no place on its pedestal in this rest pose, now lies on posts
         (:func:`planning.pedestal.posts_under`; the pedestal for this pose replaced): a narrow part bent along its
         length, on which more of ``grasps`` that work at the target clear the posts than the pedestal, and which
-        rests on them (the physics check, else the geometric one). Tried once per part and pose, and only
-        after every place tried on the pedestal failed: a part that lies on its pedestal in its first pose tried
-        keeps it."""
+        rests on them (the physics check, else the geometric one). Tried once per part and pose, after every
+        place tried on the pedestal in this pose failed (for the fingers or for any other reason); the part then
+        keeps the posts in this pose in later tries of the layout."""
         key = (name, np.round(rest_from_part, 9).tobytes())
         pedestal = self.support_cache.get(key)
         if pedestal is None or pedestal.posts or key in self.posts_tried:
@@ -613,7 +613,7 @@ class _Layout:
         re-centred with the pedestal; else the pose and pedestal stay."""
         key = (name, np.round(rest_from_part, 9).tobytes())
         pedestal = self.support_cache.get(key)
-        if pedestal is None or pedestal.chocks or key in self.fingers_freed:
+        if pedestal is None or pedestal.chocks or pedestal.posts or key in self.fingers_freed:
             return rest_from_part
         self.fingers_freed.add(key)
         if any(self._usable_at_target(name, g, grasp_ok_at_target)
@@ -795,7 +795,8 @@ class _Layout:
 
     @staticmethod
     def _top(pedestal: Pedestal) -> np.ndarray:
-        """The pedestal's top outline (4, 2) in the rest frame (centred under the part, or cut back off centre)."""
+        """The pedestal's top outline (4, 2) in the rest frame (centred under the part, or cut back off centre; its
+        main box only, for a pedestal of posts)."""
         return _box_corners(*top_box(pedestal))
 
     def _stack_of(self, slot: KittingSlot) -> set[str]:

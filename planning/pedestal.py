@@ -1,10 +1,10 @@
 """What a part lies on in the kit: a pedestal, a box on the table inset from the part's footprint so that the
 fingers reach under its edge (as the jig's pads, :mod:`planning.fixture`), and for a part that would roll or that
 stands on its edge, chocks: posts beside its ends that cradle it. A narrow part bent along its length (a curved
-rail) may lie on posts instead, one under each end and one under its middle, that follow it.
+rail) may lie on posts instead, under its ends and its centre of mass, that follow it.
 
-Frames: a pedestal's box centre is ``world_from_pedestal`` (world frame, metres, +z up); its chocks are posed in
-the pedestal's frame; the part lies in a *rest* frame (:mod:`planning.stability`) whose x-y plane is the
+Frames: a pedestal's box centre is ``world_from_pedestal`` (world frame, metres, +z up); its chocks and posts are
+posed in the pedestal's frame; the part lies in a *rest* frame (:mod:`planning.stability`) whose x-y plane is the
 pedestal's top.
 """
 
@@ -38,7 +38,8 @@ CHOCK_CONTACT_SLOP_M = 0.0003  # a part between chocks moves this much farther t
 ELONGATED_RATIO = 2.0  # only a footprint at least this many times longer than wide is cradled
 POST_LENGTH_M = 0.02  # a post under a bent bar: its extent along the bar ...
 POST_END_INSET_M = 0.01  # ... the end posts' centres this far inside the bar's ends beyond half that length
-POST_TOUCH_M = 0.001  # a post is put only where the bar's underside comes within this of the posts' tops
+POST_TOUCH_M = 0.001  # an end post moves out to where the bar's underside comes within this of its lowest point
+POST_RISE_M = 0.005  # posts rise to the bar's underside where that lies at most this above its lowest point
 _PEDESTAL_MESHES: dict[tuple, trimesh.Trimesh] = {}
 _PEDESTAL_MESHES_KEPT = 512
 
@@ -48,8 +49,9 @@ class Pedestal:
     """A box standing on the table under a part (``size_m``, its centre at ``world_from_pedestal``), and for a
     part that would roll (a round leg), chocks: posts beside both ends of the part, from the table to a little
     above the pedestal's top, that cradle it (``chocks``: (size, pedestal_from_chock) per post, box centres).
-    ``posts``: further boxes as tall as the pedestal, their tops level with its top, that the part lies on too
-    (same form as ``chocks``; :func:`posts_under`)."""
+    ``posts``: further boxes from the table up to the part that it lies on too, their tops within a few millimetres
+    of the pedestal's top (same form as ``chocks``; :func:`posts_under`, whose first post is the box of
+    ``size_m``)."""
 
     size_m: tuple[float, float, float]
     world_from_pedestal: Pose  # box centre
@@ -213,8 +215,10 @@ def _pieces_beside(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, axis: int,
 
 
 def cut_back(pedestal: Pedestal, side: tuple[int, int], cut_m: float) -> Pedestal:
-    """``pedestal`` (no chocks) with its top cut back by ``cut_m`` from its side ``side`` = (axis, sign) (0: x,
-    1: y of its own frame); the opposite edge stays where it is."""
+    """``pedestal`` (no chocks, no posts) with its top cut back by ``cut_m`` from its side ``side`` = (axis, sign)
+    (0: x, 1: y of its own frame); the opposite edge stays where it is."""
+    if pedestal.chocks or pedestal.posts:
+        raise ValueError("only a plain box pedestal is cut back")
     axis, sign = side
     size = list(pedestal.size_m)
     size[axis] -= cut_m
@@ -235,41 +239,56 @@ def top_boxes(pedestal: Pedestal) -> list[tuple[np.ndarray, np.ndarray]]:
 
 
 def top_box(pedestal: Pedestal) -> tuple[np.ndarray, np.ndarray]:
-    """(min, max) x-y corners of the box around the pedestal's top (and its posts' tops), in the frame it is posed
-    in (unrotated about z)."""
-    boxes = top_boxes(pedestal)
-    return np.min([lo for lo, _ in boxes], axis=0), np.max([hi for _, hi in boxes], axis=0)
+    """(min, max) x-y corners of the pedestal's own top (its main box, not its posts), in the frame it is posed in
+    (unrotated about z)."""
+    return top_boxes(pedestal)[0]
 
 
 def posts_under(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: float) -> Pedestal | None:
-    """A pedestal of posts (rest frame, its tops at z = 0) for a narrow elongated part lying in its rest pose: a
-    post :data:`POST_LENGTH_M` long under each end and under its centre of mass, each under the part's
-    cross-section there (as wide as it less :data:`NARROW_INSET_M` each side, at least
-    :data:`NARROW_MIN_WIDTH_M`), where its underside comes down to the posts' top (an end post moves out to where
-    the part first touches down, for an arch). A bar bent along its length (a curved chair rail) lies on them with
-    its sides free for the fingers all along, where the one box under its footprint stands out beside it. None
-    when the part is not narrow and elongated, or fewer than two posts touch it. Whether it rests on them is the
-    caller's to check."""
+    """A pedestal of posts for a narrow elongated part lying in its rest pose (the pedestal posed in the rest
+    frame, its posts in the pedestal's frame, metres; the pedestal ``height_m`` tall at z = 0): a post
+    :data:`POST_LENGTH_M` long under each end and one under its centre of mass, each under the part's
+    cross-section there (as wide as the narrowest section over the post's length, less :data:`NARROW_INSET_M` each
+    side, at least :data:`NARROW_MIN_WIDTH_M`) and rising to the part's underside there, where that comes within
+    :data:`POST_RISE_M` of its lowest point (a part settled tilted on its chocks); an end post moves out to where
+    the part first comes down (an arch stands on its very ends); posts that would overlap are not doubled. A bar
+    bent along its length (a curved chair rail) lies on them with its sides free for the fingers all along, where
+    the one box under its footprint stands out beside it. None when the part is not narrow and elongated, its
+    lowest point lies farther than :data:`POST_RISE_M` from z = 0, or fewer than two posts touch it. Whether it
+    rests on them is the caller's to check."""
     rested = mesh.vertices @ rest_from_part[:3, :3].T + rest_from_part[:3, 3]
     span = rested.max(axis=0) - rested.min(axis=0)
     along = 0 if span[0] >= span[1] else 1
     across = 1 - along
-    if span[along] < ELONGATED_RATIO * span[across] or span[across] >= NARROW_PART_M:
+    half = 0.5 * POST_LENGTH_M
+    lowest = float(rested[:, 2].min())
+    if (span[along] < ELONGATED_RATIO * span[across] or span[across] >= NARROW_PART_M
+            or span[along] < 2.0 * (POST_LENGTH_M + POST_END_INSET_M) or abs(lowest) > POST_RISE_M):
         return None
     com_along = float((rest_from_part[:3, :3] @ centre_of_mass(mesh) + rest_from_part[:3, 3])[along])
-    low = rested[rested[:, 2] <= POST_TOUCH_M, along]  # where its underside comes down to the posts' top
-    half = 0.5 * POST_LENGTH_M
+    low = rested[rested[:, 2] <= lowest + POST_TOUCH_M, along]  # where its underside comes down lowest
 
     def post_at(at: float):
-        """(centre, size) of the post centred ``at`` along the part, or None where the part does not touch it."""
-        section = _section_below(mesh, rest_from_part, along, at, np.inf)
-        if len(section) == 0 or (section[:, 2].min() > POST_TOUCH_M and not np.any(np.abs(low - at) <= half)):
+        """(centre, size) of the post centred ``at`` along the part (its top at the part's underside there, in the
+        rest frame), or None where the part's underside there is higher than :data:`POST_RISE_M` above its
+        lowest point."""
+        sections = [_section_below(mesh, rest_from_part, along, at + shift, np.inf)
+                    for shift in (0.0, -0.9 * half, 0.9 * half)]
+        if len(sections[0]) == 0:
             return None
-        lo, hi = section[:, across].min(), section[:, across].max()
+        over = rested[np.abs(rested[:, along] - at) <= half, 2]  # the part's vertices over the post
+        top = min([float(section[:, 2].min()) for section in sections if len(section)] + over.tolist())
+        if top > lowest + POST_RISE_M:
+            return None
+        # across, within the part all along the post: the narrowest of its sections there (a bent bar runs across)
+        lo = max(section[:, across].min() for section in sections if len(section))
+        hi = min(section[:, across].max() for section in sections if len(section))
+        if hi <= lo:
+            lo, hi = sections[0][:, across].min(), sections[0][:, across].max()
         width = max(hi - lo - 2.0 * NARROW_INSET_M, min(hi - lo, NARROW_MIN_WIDTH_M))
         centre, size = np.zeros(3), np.zeros(3)
-        centre[along], centre[across] = at, 0.5 * (lo + hi)
-        size[along], size[across], size[2] = POST_LENGTH_M, width, height_m
+        centre[along], centre[across], centre[2] = at, 0.5 * (lo + hi), 0.5 * (top - height_m)
+        size[along], size[across], size[2] = POST_LENGTH_M, width, height_m + top
         return centre, tuple(float(v) for v in size)
 
     # the end posts inside the part's ends, or where it first comes down there (an arch stands on its very ends)
@@ -277,10 +296,14 @@ def posts_under(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, height_m: flo
     last = (rested[:, along].max() - half - POST_END_INSET_M, low.max() - half)
     ends = [next((post for post in map(post_at, options) if post is not None), None) for options in (first, last)]
     middle = post_at(float(np.clip(com_along, first[0], last[0])))
-    boxes = [post for post in (ends[0], middle, ends[1]) if post is not None]
+    boxes = []
+    for post in (ends[0], ends[1], middle):  # the ends first; a post overlapping one already placed is left out
+        if post is not None and all(abs(post[0][along] - other[0][along]) >= POST_LENGTH_M for other in boxes):
+            boxes.append(post)
     if len(boxes) < 2:
         return None
+    boxes.sort(key=lambda post: post[0][along])
     (main_centre, main_size), others = boxes[0], boxes[1:]
-    world_from_pedestal = Pose([main_centre[0], main_centre[1], -0.5 * height_m], [1.0, 0.0, 0.0, 0.0])
+    world_from_pedestal = Pose(main_centre, [1.0, 0.0, 0.0, 0.0])
     posts = tuple((size, Pose(centre - main_centre, [1.0, 0.0, 0.0, 0.0])) for centre, size in others)
     return Pedestal(main_size, world_from_pedestal, posts=posts)

@@ -103,7 +103,8 @@ def rests_stably(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, support_rest
     survive a tilt of :data:`TIP_ANGLE_DEG`). (A stable pose of the part's hull is not
     enough on a pedestal inset from the footprint, nor for parts whose underside is not flat.) A support of several
     tops (posts) is a sequence of such polygons: the part's points on any of them hold it."""
-    outlines = [support_rest_xy] if np.ndim(support_rest_xy) == 2 else list(support_rest_xy)
+    single = isinstance(support_rest_xy, np.ndarray) and support_rest_xy.ndim == 2
+    outlines = [support_rest_xy] if single else list(support_rest_xy)
     touching = np.concatenate([touching_points(mesh, rest_from_part, outline) for outline in outlines])
     if len(touching) < 3:
         return False

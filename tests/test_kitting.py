@@ -525,6 +525,16 @@ def test_a_bent_bar_lies_on_posts_that_leave_its_sides_free():
         assert check([(bar, slot.world_from_part)], [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal),
                                                      table])
         assert _grasp_key(slot.grasp) not in clear["box"]
+        # the chocks that cradled it on the box cradle it on the posts: beside it, within 3 mm, at most touching it
+        # (it settled against them)
+        assert slot.pedestal.chocks
+        manager = trimesh.collision.CollisionManager()
+        manager.add_object("bar", bar, transform=slot.world_from_part.matrix())
+        for size, pose in slot.pedestal.chocks:
+            chock = trimesh.creation.box(size, transform=(slot.pedestal.world_from_pedestal @ pose).matrix())
+            touching, contacts = manager.in_collision_single(chock, return_data=True)
+            assert max((c.depth for c in contacts), default=0.0) < 0.0005
+            assert touching or manager.min_distance_single(chock) < 0.003
 
 
 def test_posts_are_only_for_narrow_elongated_parts_and_where_they_touch():
@@ -535,8 +545,18 @@ def test_posts_are_only_for_narrow_elongated_parts_and_where_they_touch():
     assert posts_under(board, upright_rest_pose(board, np.eye(3)), 0.12) is None
     stub = trimesh.creation.box((0.05, 0.03, 0.03))  # not elongated
     assert posts_under(stub, upright_rest_pose(stub, np.eye(3)), 0.12) is None
-    # a bar bent in its upright plane: as an arch it comes down to the posts at its very ends only, and stands on
-    # two posts there; as a rocker, only near its middle
+    dowel = trimesh.creation.box((0.05, 0.008, 0.008))  # too short for two posts
+    assert posts_under(dowel, upright_rest_pose(dowel, np.eye(3)), 0.12) is None
+    for rise, rises in ((0.002, True), (0.008, False)):  # held above the pedestal's top (settled on its chocks)
+        raised = upright_rest_pose(_bent_bar(), np.eye(3))
+        raised[2, 3] += rise
+        posts = posts_under(_bent_bar(), raised, 0.12)
+        if rises:  # the posts rise to it
+            assert posts is not None and posts.size_m[2] == pytest.approx(0.12 + rise)
+        else:
+            assert posts is None
+    # a bar bent in its upright plane: as an arch it comes down at its ends only, and stands on two posts near them
+    # that rise to it; as a rocker, it comes down near its middle only
     for turn, arch in ((np.pi / 2, True), (-np.pi / 2, False)):
         bar = _bent_bar(half_width_m=0.0085, sides=16)
         bar.apply_transform(trimesh.transformations.rotation_matrix(turn, [1.0, 0.0, 0.0]))
@@ -544,6 +564,8 @@ def test_posts_are_only_for_narrow_elongated_parts_and_where_they_touch():
         assert posts is not None
         centres = [lo[0] + 0.01 for lo, _ in top_boxes(posts)]
         if arch:
-            assert len(centres) == 2 and min(centres) < -0.12 and max(centres) > 0.12
+            assert len(centres) == 2 and min(centres) < -0.11 and max(centres) > 0.11
+            assert posts.size_m[2] > 0.12 + 0.001  # rising to the arch's underside, which leaves the floor at its ends
         else:
             assert max(np.abs(centres)) < 0.03
+        assert min(np.diff(sorted(centres))) >= 0.02  # none overlaps another
