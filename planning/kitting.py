@@ -396,6 +396,7 @@ class _Layout:
         self.picked: set[str] = set()  # parts that some place tried lets the hand grasp clear of their support
         self.fingers_freed: set[tuple] = set()  # (part, rest pose) whose pedestal :meth:`_free_fingers` checked
         self.posts_tried: set[tuple] = set()  # (part, rest pose) that :meth:`_onto_posts` tried
+        self.failed_on_ground: dict[str, list] = {}  # part -> (rest pose, grasps, probability) without a place
 
     def rank(self, name: str) -> int:
         return self.order.index(name)
@@ -424,6 +425,7 @@ class _Layout:
         # on the ground, the poses where more of the grasps wanted at the target pick from above come first
         ground = sorted(self._ground_poses(name, poses),
                         key=lambda pose: -_picks_from_above(grasps[:SCORED_GRASPS], pose[0]))
+        self.failed_on_ground[name] = []
         found = self._place_among(name, mesh, grasps, grasp_ok_at_target, poses, ground, stack_first=_is_board(mesh))
         if found is None and self.settles is not None:
             # none of the poses it rests in as laid gives a place: those it settles in (chair_ivar_0668's frame of
@@ -431,6 +433,13 @@ class _Layout:
             settled = [pose for pose in self._settled_poses(name, poses) if not any(
                 np.allclose(pose[0], other[0]) for other in ground)]
             found = self._place_among(name, mesh, grasps, grasp_ok_at_target, poses, settled, stack_first=None)
+        if found is None:  # no place anywhere on its pedestals: a bent bar, on posts that follow it
+            for rest_from_part, pose_grasps, probability in self.failed_on_ground.pop(name):
+                if self._onto_posts(name, rest_from_part, pose_grasps, grasp_ok_at_target):
+                    found = self._first_place(name, mesh, pose_grasps, grasp_ok_at_target, rest_from_part,
+                                              self._ground_places(name, rest_from_part), probability)
+                    if found is not None:
+                        break
         return found
 
     def _place_among(self, name: str, mesh: trimesh.Trimesh, grasps: list[Grasp], grasp_ok_at_target,
@@ -450,12 +459,10 @@ class _Layout:
                           else self._ground_places(name, rest_from_part))
                 slot = self._first_place(name, mesh, pose_grasps, grasp_ok_at_target, rest_from_part, places,
                                          probability)
-                if slot is None and attempt == "ground" and self._onto_posts(name, rest_from_part, pose_grasps,
-                                                                             grasp_ok_at_target):
-                    slot = self._first_place(name, mesh, pose_grasps, grasp_ok_at_target, rest_from_part,
-                                             self._ground_places(name, rest_from_part), probability)
                 if slot is not None:
                     return slot
+                if attempt == "ground":
+                    self.failed_on_ground.setdefault(name, []).append((rest_from_part, pose_grasps, probability))
         return None
 
     def _first_place(self, name: str, mesh: trimesh.Trimesh, grasps: list[Grasp], grasp_ok_at_target,
@@ -482,12 +489,12 @@ class _Layout:
 
     def _onto_posts(self, name: str, rest_from_part: np.ndarray, grasps: Sequence[Grasp],
                     grasp_ok_at_target) -> bool:
-        """Whether the part, having found no place on its pedestal in this rest pose, now lies on posts
-        (:func:`planning.pedestal.posts_under`; the pedestal for this pose replaced): a narrow part bent along its
-        length, on which more of ``grasps`` that work at the target clear the posts than the pedestal, and which
-        rests on them (the physics check, else the geometric one). Tried once per part and pose, after every
-        place tried on the pedestal in this pose failed (for the fingers or for any other reason); the part then
-        keeps the posts in this pose in later tries of the layout."""
+        """Whether the part, having found no place on its pedestals in any rest pose (:meth:`place`), now lies on
+        posts in this one (:func:`planning.pedestal.posts_under`; the pedestal for this pose replaced): a narrow
+        part bent along its length, where some of ``grasps`` clear the posts but not the pedestal and work at the
+        target, and which rests on the posts (the physics check, else the geometric one). Tried once per part and
+        pose; the part keeps the posts in this pose in later tries of the layout. A part that finds a place on its
+        pedestals never gets here: its layout is as without posts."""
         key = (name, np.round(rest_from_part, 9).tobytes())
         pedestal = self.support_cache.get(key)
         if pedestal is None or pedestal.posts or key in self.posts_tried:
@@ -502,12 +509,10 @@ class _Layout:
             posts = dataclasses.replace(posts, chocks=tuple((size, posts_from_pedestal @ pose)
                                                             for size, pose in pedestal.chocks))
 
-        def usable(support: Pedestal) -> int:
-            return sum(self._usable_at_target(name, g, grasp_ok_at_target)
-                       for g in self._clear_of(grasps, rest_from_part, support))
-
-        if usable(posts) <= usable(pedestal):
-            return False
+        on_pedestal = {_grasp_key(g) for g in self._clear_of(grasps, rest_from_part, pedestal)}
+        if not any(self._usable_at_target(name, g, grasp_ok_at_target)
+                   for g in self._clear_of(grasps, rest_from_part, posts) if _grasp_key(g) not in on_pedestal):
+            return False  # (a straight bar's posts are as wide as its pedestal: they free no grasp)
         if not (self._rests(name, [(mesh, Pose.from_matrix(rest_from_part))], self._fixed(posts))
                 if self.rests is not None else
                 rests_stably(mesh, rest_from_part, [_box_corners(lo, hi) for lo, hi in top_boxes(posts)])):
