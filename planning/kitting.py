@@ -462,7 +462,7 @@ class _Layout:
                 if slot is not None:
                     return slot
                 if attempt == "ground":
-                    self.failed_on_ground.setdefault(name, []).append((rest_from_part, pose_grasps, probability))
+                    self.failed_on_ground[name].append((rest_from_part, pose_grasps, probability))
         return None
 
     def _first_place(self, name: str, mesh: trimesh.Trimesh, grasps: list[Grasp], grasp_ok_at_target,
@@ -508,7 +508,6 @@ class _Layout:
             posts_from_pedestal = posts.world_from_pedestal.inverse() @ pedestal.world_from_pedestal
             posts = dataclasses.replace(posts, chocks=tuple((size, posts_from_pedestal @ pose)
                                                             for size, pose in pedestal.chocks))
-
         on_pedestal = {_grasp_key(g) for g in self._clear_of(grasps, rest_from_part, pedestal)}
         if not any(self._usable_at_target(name, g, grasp_ok_at_target)
                    for g in self._clear_of(grasps, rest_from_part, posts) if _grasp_key(g) not in on_pedestal):
