@@ -42,16 +42,15 @@ from planning.fixture import fixture_pads
 from planning.grasp import APPROACH_M, Grasp, feasible_grasps, grasp_pose_key
 from planning.gripper import clearance_gripper
 from planning.kitting import (
-    HAND_CLEARANCE_M,
     NO_GRASP_AT_TARGET,
     NO_PLACE,
     TOO_LARGE,
-    KittingArea,
     KittingError,
     KittingSlot,
     Reach,
     plan_kitting,
 )
+from planning.kitting_area import KittingArea
 from planning.motion import MotionSettings
 from planning.panda_ik import SHOULDER_HEIGHT_M
 from planning.payload import (
@@ -63,6 +62,7 @@ from planning.payload import (
     MassProperties,
     mass_properties,
 )
+from planning.pick_clearance import HAND_CLEARANCE_M
 from planning.pose import Pose
 from planning.robot_collision import LINK_CLEARANCE_M, RobotCollisionChecker
 from planning.sequence import GraspChecker, plan_assembly_sequence

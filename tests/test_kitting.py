@@ -7,20 +7,15 @@ from scipy.spatial.transform import Rotation
 
 from planning.assembly import read_assembly
 from planning.grasp import APPROACH_M, Grasp, feasible_grasps
-from planning.kitting import (
+from planning.kitting import NO_GRASP_AT_TARGET, TOO_LARGE, KittingError, Reach, plan_kitting
+from planning.kitting_area import KittingArea, polygons_overlap
+from planning.pick_clearance import (
     HAND,
     HAND_CLEARANCE_M,
     NEIGHBOUR_CLEARANCE_M,
-    NO_GRASP_AT_TARGET,
-    TOO_LARGE,
-    KittingArea,
-    KittingError,
-    Reach,
-    _pickable,
-    _polygons_overlap,
-    _tips_under,
     clear_at_pick,
-    plan_kitting,
+    pickable,
+    tips_under,
 )
 from planning.pose import Pose
 from planning.sequence import GraspChecker
@@ -69,7 +64,7 @@ def test_chair_parts_lie_apart_in_the_ring_with_grasps_valid_at_pick():
         assert not np.any(np.all((world[:, :2] > [0.25, -0.25]) & (world[:, :2] < [0.75, 0.25]), axis=1))
         for other in slots[:k]:
             stacked = slot.part in (other.rests_on, other.part) or other.part == slot.rests_on
-            assert stacked or not _polygons_overlap(slot.footprint_world, other.footprint_world)
+            assert stacked or not polygons_overlap(slot.footprint_world, other.footprint_world)
         # when it is picked: the pedestals and the parts assembled after it are there, its support aside
         present = [(assembly.part(o.part).mesh, o.world_from_part) for o in slots[k + 1:]
                    if o.part != slot.rests_on]
@@ -165,11 +160,11 @@ def test_a_part_laid_out_first_takes_the_place_nearest_the_jig():
 
 
 def _plain_pedestal_top(mesh, rest_from_part):
-    from planning.kitting import _rest_half
+    from planning.kitting_support import rest_half
     from planning.pedestal import pedestal_for
     from planning.pose import Pose
 
-    half, _ = _rest_half(mesh, rest_from_part)
+    half, _ = rest_half(mesh, rest_from_part)
     pedestal = pedestal_for(half, Pose([0, 0, 0], [1, 0, 0, 0]), 0.12)
     return pedestal, np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * 0.5 * np.array(pedestal.size_m[:2])
 
@@ -319,8 +314,8 @@ def test_a_grasp_keeps_more_clearance_from_other_slots_than_from_its_own_pedesta
             low, high = (low, middle) if pickable(middle) else (middle, high)
         return high
 
-    as_support = closest(lambda offset: bool(_pickable([grasp], world_from_bar, block(offset), 0.0)))
-    as_neighbour = closest(lambda offset: bool(_pickable([grasp], world_from_bar, [], 0.0, block(offset))))
+    as_support = closest(lambda offset: bool(pickable([grasp], world_from_bar, block(offset), 0.0)))
+    as_neighbour = closest(lambda offset: bool(pickable([grasp], world_from_bar, [], 0.0, block(offset))))
     assert 0.005 < as_support < 0.03  # the fingers' half depth and the clearance
     # the hand models are grown about each piece's centre, by about the clearance
     assert as_neighbour - as_support == pytest.approx(NEIGHBOUR_CLEARANCE_M - HAND_CLEARANCE_M, abs=4e-4)
@@ -466,7 +461,7 @@ def test_a_part_standing_on_a_narrow_foot_is_not_picked_by_a_hand_coming_on_a_sl
     slat = trimesh.creation.box((0.24, 0.025, 0.0074))  # long x, wide y, thin z
     standing = Pose([0.5, 0.3, 0.24], Rotation.from_euler("y", -90, degrees=True).as_quat(scalar_first=True))
     assert np.allclose(standing.rotation @ [1.0, 0.0, 0.0], [0.0, 0.0, 1.0], atol=1e-9)  # on its end
-    tips = _tips_under(slat, standing)
+    tips = tips_under(slat, standing)
 
     def grasp_with(approach_world: np.ndarray) -> Grasp:
         closing = standing.rotation @ [0.0, 0.0, 1.0]  # across the thickness
@@ -487,7 +482,7 @@ def test_a_part_standing_on_a_narrow_foot_is_not_picked_by_a_hand_coming_on_a_sl
     world_tcp = np.column_stack([np.cross(closing, approach), closing, approach])
     lying = Grasp(Pose([0.0, 0.0, 0.0], Rotation.from_matrix(on_edge.rotation.T @ world_tcp).as_quat(
         scalar_first=True)), width_m=0.0074, opening_m=0.0174, score=1.0, centroid_score=1.0, contact_score=1.0)
-    assert not _tips_under(slat, on_edge)(lying)
+    assert not tips_under(slat, on_edge)(lying)
 
 
 def test_a_bent_bar_lies_on_posts_that_leave_its_sides_free():
@@ -498,8 +493,9 @@ def test_a_bent_bar_lies_on_posts_that_leave_its_sides_free():
     out."""
     from cell.resting import PhysicsRestCheck
     from planning.grasp import antipodal_grasps
-    from planning.kitting import _grasp_key, _rest_half
+    from planning.kitting_support import rest_half
     from planning.pedestal import pedestal_for, posts_under, top_boxes
+    from planning.pick_clearance import grasp_key
     from planning.stability import upright_rest_pose
 
     bar, height = _bent_bar(half_width_m=0.0085, sides=16), AREA.pedestal_height_m
@@ -510,21 +506,21 @@ def test_a_bent_bar_lies_on_posts_that_leave_its_sides_free():
     for lo, hi in top_boxes(posts):  # each post's top lies within the bar's cross-section above it
         above = rested[(rested[:, 0] > lo[0] - 0.01) & (rested[:, 0] < hi[0] + 0.01), 1]
         assert above.min() <= lo[1] and hi[1] <= above.max()
-    box = pedestal_for(_rest_half(bar, flat)[0], Pose([0, 0, 0], [1, 0, 0, 0]), height)
+    box = pedestal_for(rest_half(bar, flat)[0], Pose([0, 0, 0], [1, 0, 0, 0]), height)
     grasps = [g for g in antipodal_grasps(bar, np.random.default_rng(0)) if g.part_from_tcp.rotation[2, 2] < -0.9]
     floor = (trimesh.creation.box((4.0, 4.0, 0.02)), Pose([0, 0, -height - 0.01], [1, 0, 0, 0]))
-    clear = {name: {_grasp_key(g) for g in clear_at_pick(grasps, Pose.from_matrix(flat), [
+    clear = {name: {grasp_key(g) for g in clear_at_pick(grasps, Pose.from_matrix(flat), [
         (support.mesh(), support.world_from_pedestal), floor], -height, HAND, approach_m=APPROACH_M)}
         for name, support in (("box", box), ("posts", posts))}
     assert len(clear["posts"]) >= 3 * max(len(clear["box"]), 1)
     table = (trimesh.creation.box((4.0, 4.0, 0.02)), Pose([0, 0, -0.01], [1, 0, 0, 0]))
     with PhysicsRestCheck() as check:
-        slot = plan_kitting(["bar"], [bar], {"bar": grasps}, lambda name, g: _grasp_key(g) not in clear["box"],
+        slot = plan_kitting(["bar"], [bar], {"bar": grasps}, lambda name, g: grasp_key(g) not in clear["box"],
                             AREA, rests=check, settles=check.settle, target_rotations={"bar": np.eye(3)})[0]
         assert slot.pedestal.posts and slot.world_from_part.rotation[2, 2] > 0.999  # flat, on posts
         assert check([(bar, slot.world_from_part)], [(slot.pedestal.mesh(), slot.pedestal.world_from_pedestal),
                                                      table])
-        assert _grasp_key(slot.grasp) not in clear["box"]
+        assert grasp_key(slot.grasp) not in clear["box"]
         # the chocks that cradled it on the box cradle it on the posts: beside it, within 3 mm, at most touching it
         # (it settled against them)
         assert slot.pedestal.chocks

@@ -14,7 +14,7 @@ from cell.bodies import add_convex_body
 from cell.bullet import BulletClient
 from cell.resting import PhysicsRestCheck
 from cell.simulate import SimSettings, configure_physics
-from planning.kitting import _rest_half
+from planning.kitting_support import rest_half
 from planning.payload import mass_properties
 from planning.pedestal import chocks_for, pedestal_for
 from planning.pose import Pose
@@ -37,7 +37,7 @@ def _on_pedestal(mesh: trimesh.Trimesh):
     """The part standing as modelled (upright), its pedestal as kitting makes it (with chocks where it would
     roll), and what the geometric checks say: (loose, fixed, rests geometrically, chocks)."""
     rest = upright_rest_pose(mesh, np.eye(3))
-    pedestal = pedestal_for(_rest_half(mesh, rest)[0], IDENTITY, PEDESTAL_HEIGHT_M)
+    pedestal = pedestal_for(rest_half(mesh, rest)[0], IDENTITY, PEDESTAL_HEIGHT_M)
     top = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * 0.5 * np.array(pedestal.size_m[:2])
     stable = rests_stably(mesh, rest, top)
     chocks = () if stable else chocks_for(mesh, rest, PEDESTAL_HEIGHT_M, top)
@@ -118,7 +118,8 @@ def test_a_stacked_board_rests_when_centred_and_slides_off_when_overhanging():
 
 def test_kitting_never_stands_a_frame_where_physics_says_it_falls():
     from planning.grasp import antipodal_grasps
-    from planning.kitting import KittingArea, plan_kitting
+    from planning.kitting import plan_kitting
+    from planning.kitting_area import KittingArea
 
     frame = _frame(0.25)
     area = KittingArea(centre_xy=(0.0, 0.0), inner_radius_m=0.32, outer_radius_m=0.72, table_min_xy=(-0.55, -0.8),
@@ -148,7 +149,8 @@ def test_kitting_lays_a_part_wedged_only_where_it_rests_in_no_pose_unwedged():
     # a checker that finds every resting body wedged (its contacts carry its weight: a ratio of 1 > 0.5): kitting
     # still places the frame, allowing it wedged as the last resort; with the usual ratio, in the same place
     from planning.grasp import antipodal_grasps
-    from planning.kitting import KittingArea, plan_kitting
+    from planning.kitting import plan_kitting
+    from planning.kitting_area import KittingArea
 
     frame = _frame(0.25)
     area = KittingArea(centre_xy=(0.0, 0.0), inner_radius_m=0.32, outer_radius_m=0.72, table_min_xy=(-0.55, -0.8),
@@ -173,7 +175,7 @@ def _sway_of_top_mm(mesh: trimesh.Trimesh, chocks, nudge_rad_s: float = 0.2) -> 
     top edge ends from where it stood, after 1.5 s (millimetres), with the simulation's bodies."""
     settings = SimSettings()
     rest = upright_rest_pose(mesh, np.eye(3))
-    pedestal = dataclasses.replace(pedestal_for(_rest_half(mesh, rest)[0], IDENTITY, PEDESTAL_HEIGHT_M),
+    pedestal = dataclasses.replace(pedestal_for(rest_half(mesh, rest)[0], IDENTITY, PEDESTAL_HEIGHT_M),
                                    chocks=chocks)
     with BulletClient() as client, tempfile.TemporaryDirectory() as folder:
         cid = client.client_id
@@ -246,12 +248,13 @@ def test_a_frame_lying_flat_falls_through_its_usual_pedestal_and_settles_on_a_wi
     settling, kitting lays it flat as it sits in its assembly on a pedestal inset 5 mm, where it rests;
     without it, it stands the frame on an edge."""
     from planning.grasp import antipodal_grasps
-    from planning.kitting import KittingArea, plan_kitting
+    from planning.kitting import plan_kitting
+    from planning.kitting_area import KittingArea
     from planning.pedestal import NARROW_INSET_M
 
     frame = _square_frame(0.24, 0.02, 0.03)
     flat = upright_rest_pose(frame, np.eye(3))
-    usual = pedestal_for(_rest_half(frame, flat)[0], IDENTITY, PEDESTAL_HEIGHT_M)
+    usual = pedestal_for(rest_half(frame, flat)[0], IDENTITY, PEDESTAL_HEIGHT_M)
     assert max(usual.size_m[:2]) < 0.24 - 2 * 0.02  # it fits the opening
     top = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * 0.5 * np.array(usual.size_m[:2])
     assert not rests_stably(frame, flat, top)
@@ -286,12 +289,14 @@ def test_a_frame_of_thin_bars_lies_on_a_pedestal_cut_back_from_one_side():
     from one side, so that the bar there overhangs it, and the frame rests on what is left; the grasp it picks
     closes on that bar, beyond the pedestal's edge."""
     from planning.grasp import antipodal_grasps
-    from planning.kitting import HAND, KittingArea, clear_at_pick, plan_kitting
+    from planning.kitting import plan_kitting
+    from planning.kitting_area import KittingArea
     from planning.pedestal import NARROW_INSET_M
+    from planning.pick_clearance import HAND, clear_at_pick
 
     frame = _square_frame(0.24, 0.012, 0.012)
     flat = upright_rest_pose(frame, np.eye(3))
-    wide = pedestal_for(_rest_half(frame, flat)[0], IDENTITY, PEDESTAL_HEIGHT_M, wide=True)
+    wide = pedestal_for(rest_half(frame, flat)[0], IDENTITY, PEDESTAL_HEIGHT_M, wide=True)
     grasps = [g for g in antipodal_grasps(frame, np.random.default_rng(0)) if g.part_from_tcp.rotation[2, 2] < -0.9]
     assert grasps
     floor = (trimesh.creation.box((4.0, 4.0, 0.02)), Pose([0, 0, -PEDESTAL_HEIGHT_M - 0.01], [1, 0, 0, 0]))
