@@ -4,8 +4,8 @@ The kitting area is a ring around the robot base on the table (:class:`KittingAr
 (clear of the robot's base) and an outer radius (within reach), inside the table, outside keep-out rectangles
 (the jig with the assembly growing on it, plus room for the hand). Each part's footprint is a rectangle turned
 so that its long side runs along the ring (tangential) or across it; :func:`candidate_places` lists the places
-nearest the jig first. The rectangle tests are separating-axis tests, vectorised with numpy (thousands of
-candidate places against every slot at once; a general polygon library would test them one pair at a time).
+nearest the jig first. The rectangle tests are separating-axis tests written with numpy, thousands of candidate
+places against every slot at once: convex quadrilaterals need nothing more, so no polygon library is required.
 """
 
 from __future__ import annotations
