@@ -262,12 +262,12 @@ class SupportChoice:
 
     def _onto_posts(self, name: str, rest_from_part: np.ndarray, grasps: Sequence[Grasp],
                     grasp_ok_at_target) -> bool:
-        """Whether the part, having found no place on its pedestals in any rest pose (:meth:`place`), now lies on
-        posts in this one (:func:`planning.pedestal.posts_under`; the pedestal for this pose replaced): a narrow
-        part bent along its length, where some of ``grasps`` clear the posts but not the pedestal and work at the
-        target, and which rests on the posts (the physics check, else the geometric one). Tried once per part and
-        pose; the part keeps the posts in this pose in later tries of the layout. A part that finds a place on its
-        pedestals never gets here: its layout is as without posts."""
+        """Whether the part, having found no place on its pedestals in any rest pose (the layout's ``place``),
+        now lies on posts in this one (:func:`planning.pedestal.posts_under`; the pedestal for this pose replaced):
+        a narrow part bent along its length, where some of ``grasps`` clear the posts but not the pedestal and work
+        at the target, and which rests on the posts (the physics check, else the geometric one). Tried once per
+        part and pose; the part keeps the posts in this pose in later tries of the layout. A part that finds a
+        place on its pedestals never gets here: its layout is as without posts."""
         key = (name, np.round(rest_from_part, 9).tobytes())
         pedestal = self.support_cache.get(key)
         if pedestal is None or pedestal.posts or key in self.posts_tried:
@@ -295,8 +295,8 @@ class SupportChoice:
 
 def settled_low(mesh: trimesh.Trimesh, rest_from_part: np.ndarray, lying: np.ndarray) -> bool:
     """Whether a part laid down in ``rest_from_part`` that settled in ``lying`` (both rest frames, 4x4) lies as
-    :meth:`_Layout._settled` accepts: turned by at most :data:`SETTLE_MAX_TILT_DEG`, its centre of mass sunk by at
-    most :data:`SETTLE_MAX_DROP_M`, and lying low (:data:`SETTLE_MAX_COM_HEIGHT_RATIO`)."""
+    :meth:`SupportChoice._settled` accepts: turned by at most :data:`SETTLE_MAX_TILT_DEG`, its centre of mass sunk
+    by at most :data:`SETTLE_MAX_DROP_M`, and lying low (:data:`SETTLE_MAX_COM_HEIGHT_RATIO`)."""
     com = centre_of_mass(mesh)
     turned = lying[:3, :3] @ rest_from_part[:3, :3].T
     tilt = np.degrees(np.arccos(np.clip(turned[2, 2], -1.0, 1.0)))  # how far its up axis turned
