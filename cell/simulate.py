@@ -175,8 +175,9 @@ class SimSettings:
     # speed well within the 2 s and keeps falling. Bullet also wakes a sleeping body when another passes within its
     # contact margin without touching it, and one woken so may not sleep again (a cabinet's drawer back standing on
     # its 6 mm edge beside a creeping neighbour, woken by a board carried past, turned 10 degrees in 29 s and the
-    # fingers came down on it): every KIT_HOLD_CHECK_S, a kit part that touches nothing but static bodies and
-    # moves slower than this is put back where it was first found so (see :meth:`_Run._hold_kit_still`)
+    # fingers came down on it): every KIT_HOLD_CHECK_S, a kit part that touches nothing but static bodies is put
+    # back where it was first found slower than this; once the program runs, whatever its speed, as long as nothing
+    # else has touched it since (see :meth:`_Run._hold_kit_still`)
     kit_sleep_threshold: float | None = 1e-5
     joint_limit_margin_rad: float = 1e-3  # a joint this far beyond its position limit breaks it
     velocity_tolerance: float = 0.03  # relative: a joint faster than (1 + this) x its velocity limit breaks it
@@ -444,6 +445,7 @@ class _Run:
         self.inserting = False  # the held part's insertion is under way (see :meth:`_insert`)
         self.steps_to_kit_check = 0
         self.kit_rest: dict[str, tuple] = {}  # kit part -> (position, orientation) where it is held still
+        self.kit_disturbed: set[str] = set()  # kit parts something other than a static body has touched
         self.arm_q = np.zeros(7)
         self.arm_qd = np.zeros(7)
 
@@ -573,6 +575,8 @@ class _Run:
         self._check_contacts(role)
         if self.closing is not None and self.held is None and self._gripped(self.closing.part):
             self._weld(self.closing.part, self.planned_grasps.get(id(self.closing)))
+        if self.kit_rest:
+            self._note_kit_touches()
         self.steps_to_kit_check -= 1
         if self.steps_to_kit_check <= 0 and self.settings.kit_sleep_threshold is not None:
             self.steps_to_kit_check = max(1, int(round(KIT_HOLD_CHECK_S * self.settings.rate_hz)))
@@ -589,10 +593,15 @@ class _Run:
                             tuple(float(v) for v in self.arm_q), (float(fingers[0][0]), float(fingers[1][0])))
 
     def _hold_kit_still(self) -> None:
-        """Hold still the kit parts (never woken for a pick) that touch nothing but static bodies and move slower
-        than :attr:`SimSettings.kit_sleep_threshold`, as if asleep: each is put back where it was first found so
-        (see there: Bullet does not always let such a part sleep again once something passing has woken it).
-        Touched by anything else, or faster, a part is let go (and found at rest again later)."""
+        """Hold still the kit parts (never woken for a pick) that touch nothing but static bodies, as if asleep:
+        each is put back where it was first found moving slower than :attr:`SimSettings.kit_sleep_threshold` (see
+        there: Bullet does not always let such a part sleep again once something passing has woken it). Touched by
+        anything else, a part is let go, and once so disturbed it is held again only where it is found at rest
+        again and let go whenever it moves faster. Once the program runs, a part nothing has touched since it came
+        to rest is held whatever its speed (one that tips while the parts settle still falls, and is reported):
+        nothing can set it moving (the kitting checked with physics that it rests there), while Bullet's
+        contacts on a thin edge can (cabinet_7's drawer back, an 8 mm board standing on its edge between chocks,
+        gained speed untouched between two checks, was let go, and tipped onto a chock)."""
         pb, cid, cell = self.pb, self.cid, self.cell
         static = set(cell.static.values())
         for name, body in cell.parts.items():
@@ -602,7 +611,11 @@ class _Run:
             linear, angular = pb.getBaseVelocity(body, physicsClientId=cid)
             speed = float(np.dot(linear, linear) + np.dot(angular, angular))
             touched = any(point[2] not in static for point in pb.getContactPoints(bodyA=body, physicsClientId=cid))
-            if touched or speed >= self.settings.kit_sleep_threshold:
+            moving = speed >= self.settings.kit_sleep_threshold
+            if touched:
+                self.kit_disturbed.add(name)
+            settling = self.time_s < 0.0  # the parts settle before the program (SimSettings.settle_s)
+            if touched or (moving and (settling or name in self.kit_disturbed or name not in self.kit_rest)):
                 self.kit_rest.pop(name, None)
                 continue
             rest = self.kit_rest.get(name)
@@ -611,6 +624,18 @@ class _Run:
             elif speed > 0.0:
                 pb.resetBasePositionAndOrientation(body, *rest, physicsClientId=cid)
                 pb.resetBaseVelocity(body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], physicsClientId=cid)
+
+    def _note_kit_touches(self) -> None:
+        """Let go, as disturbed, every kit part held still that something other than a static body touches now:
+        checked every step, since a brief knock between two checks of :meth:`_hold_kit_still` would otherwise be
+        undone there (about 2 microseconds a part a step)."""
+        pb, cid, cell = self.pb, self.cid, self.cell
+        static = set(cell.static.values())
+        for name in list(self.kit_rest):
+            body = cell.parts[name]
+            if any(point[2] not in static for point in pb.getContactPoints(bodyA=body, physicsClientId=cid)):
+                self.kit_disturbed.add(name)
+                del self.kit_rest[name]
 
     def _wake(self, name: str) -> None:
         """``name`` wakes and never sleeps again: from the approach to its pick on, so that the approach, the grasp
