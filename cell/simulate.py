@@ -177,7 +177,7 @@ class SimSettings:
     # its 6 mm edge beside a creeping neighbour, woken by a board carried past, turned 10 degrees in 29 s and the
     # fingers came down on it): every KIT_HOLD_CHECK_S, a kit part that touches nothing but static bodies is put
     # back where it was first found slower than this; once the program runs, whatever its speed, as long as nothing
-    # else has touched it since (see :meth:`_Run._hold_kit_still`)
+    # else has touched it and it has not moved since the program started (see :meth:`_Run._hold_kit_still`)
     kit_sleep_threshold: float | None = 1e-5
     joint_limit_margin_rad: float = 1e-3  # a joint this far beyond its position limit breaks it
     velocity_tolerance: float = 0.03  # relative: a joint faster than (1 + this) x its velocity limit breaks it
@@ -446,6 +446,8 @@ class _Run:
         self.steps_to_kit_check = 0
         self.kit_rest: dict[str, tuple] = {}  # kit part -> (position, orientation) where it is held still
         self.kit_disturbed: set[str] = set()  # kit parts something other than a static body has touched
+        self.kit_still: set[str] = set()  # kit parts found at rest, untouched, since the program started
+        self.program_running = False  # the parts have settled (see start)
         self.arm_q = np.zeros(7)
         self.arm_qd = np.zeros(7)
 
@@ -537,6 +539,7 @@ class _Run:
         self._command_fingers(self.opening_m)
         centres = {n: p.world_from_start.apply(p.mesh.centroid) for n, p in self.parts.items()}
         self.settle(q0, "settling before the program")
+        self.program_running = True
         self.pb.performCollisionDetection(physicsClientId=self.cid)
         others = {**self.cell.static, **self.cell.parts}
         self.start_supports = {name: frozenset(self.cell.touching(self.cell.parts[name], others,
@@ -575,7 +578,7 @@ class _Run:
         self._check_contacts(role)
         if self.closing is not None and self.held is None and self._gripped(self.closing.part):
             self._weld(self.closing.part, self.planned_grasps.get(id(self.closing)))
-        if self.kit_rest:
+        if self.kit_still:
             self._note_kit_touches()
         self.steps_to_kit_check -= 1
         if self.steps_to_kit_check <= 0 and self.settings.kit_sleep_threshold is not None:
@@ -595,29 +598,35 @@ class _Run:
     def _hold_kit_still(self) -> None:
         """Hold still the kit parts (never woken for a pick) that touch nothing but static bodies, as if asleep:
         each is put back where it was first found moving slower than :attr:`SimSettings.kit_sleep_threshold` (see
-        there: Bullet does not always let such a part sleep again once something passing has woken it). Touched by
-        anything else, a part is let go, and once so disturbed it is held again only where it is found at rest
-        again and let go whenever it moves faster. Once the program runs, a part nothing has touched since it came
-        to rest is held whatever its speed (one that tips while the parts settle still falls, and is reported):
-        nothing can set it moving (the kitting checked with physics that it rests there), while Bullet's
-        contacts on a thin edge can (cabinet_7's drawer back, an 8 mm board standing on its edge between chocks,
-        gained speed untouched between two checks, was let go, and tipped onto a chock)."""
+        there: Bullet does not always let such a part sleep again once something passing has woken it), and let go
+        when it moves faster. Once the program runs, a part found so at rest at one of these checks, which nothing
+        has touched and which has not moved since the program started (:meth:`_note_kit_touches`), is held
+        whatever its speed: nothing can
+        set it moving (the kitting checked with physics that it rests there), while Bullet's contacts on a thin edge
+        can (cabinet_7's drawer back, an 8 mm board standing on its edge between chocks, gained speed untouched
+        between two checks, was let go, and tipped onto a chock). A part that tips while the parts settle falls,
+        and is reported; one that something touches is let go, and held again only where it comes to rest."""
         pb, cid, cell = self.pb, self.cid, self.cell
         static = set(cell.static.values())
         for name, body in cell.parts.items():
             if name in self.awake or name == self.held:
                 self.kit_rest.pop(name, None)
+                self.kit_still.discard(name)
                 continue
             linear, angular = pb.getBaseVelocity(body, physicsClientId=cid)
             speed = float(np.dot(linear, linear) + np.dot(angular, angular))
             touched = any(point[2] not in static for point in pb.getContactPoints(bodyA=body, physicsClientId=cid))
-            moving = speed >= self.settings.kit_sleep_threshold
             if touched:
                 self.kit_disturbed.add(name)
-            settling = self.time_s < 0.0  # the parts settle before the program (SimSettings.settle_s)
-            if touched or (moving and (settling or name in self.kit_disturbed or name not in self.kit_rest)):
+                self.kit_still.discard(name)
+            moving = speed >= self.settings.kit_sleep_threshold
+            if moving and self.program_running and name not in self.kit_still:
+                self.kit_disturbed.add(name)  # not at rest when the program started, or knocked since
+            if touched or (moving and name not in self.kit_still):
                 self.kit_rest.pop(name, None)
                 continue
+            if self.program_running and name not in self.kit_disturbed:
+                self.kit_still.add(name)
             rest = self.kit_rest.get(name)
             if rest is None:
                 self.kit_rest[name] = pb.getBasePositionAndOrientation(body, physicsClientId=cid)
@@ -626,16 +635,17 @@ class _Run:
                 pb.resetBaseVelocity(body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], physicsClientId=cid)
 
     def _note_kit_touches(self) -> None:
-        """Let go, as disturbed, every kit part held still that something other than a static body touches now:
-        checked every step, since a brief knock between two checks of :meth:`_hold_kit_still` would otherwise be
-        undone there (about 2 microseconds a part a step)."""
+        """Mark as touched (no longer held whatever its speed) every kit part that something other than a static
+        body touches now: checked every step while the program runs, since a brief knock between two checks of
+        :meth:`_hold_kit_still` would otherwise be undone there (about 2 microseconds a part a step)."""
         pb, cid, cell = self.pb, self.cid, self.cell
         static = set(cell.static.values())
-        for name in list(self.kit_rest):
-            body = cell.parts[name]
-            if any(point[2] not in static for point in pb.getContactPoints(bodyA=body, physicsClientId=cid)):
+        for name in list(self.kit_still):
+            if any(point[2] not in static for point in pb.getContactPoints(bodyA=cell.parts[name],
+                                                                             physicsClientId=cid)):
                 self.kit_disturbed.add(name)
-                del self.kit_rest[name]
+                self.kit_still.discard(name)
+                self.kit_rest.pop(name, None)
 
     def _wake(self, name: str) -> None:
         """``name`` wakes and never sleeps again: from the approach to its pick on, so that the approach, the grasp

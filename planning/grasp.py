@@ -143,7 +143,7 @@ class Grasp:
     top_down_score: ``(1 - approach_z) / 2`` in the world at the target, 0.5 when no target pose is given.
     contacts_part: (2, 3) the two contact points in the part frame, metres (first at -y, second at +y of the TCP).
     pick_opening_m: opening used to approach the part where it is picked, when wider than ``opening_m`` (a board
-    standing between chocks may lean: :mod:`planning.kitting`), metres; None: ``opening_m`` there too.
+    standing between chocks may lean: :mod:`planning.kitting_support`), metres; None: ``opening_m`` there too.
     """
 
     part_from_tcp: Pose

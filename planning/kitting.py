@@ -166,8 +166,9 @@ def plan_kitting(names: list[str], meshes: list[trimesh.Trimesh], candidates: di
     when given, says where such bodies come to rest (world_from_part each, or None when they do not, e.g.
     :meth:`cell.resting.PhysicsRestCheck.settle`): a part with no rest pose that the geometry or ``rests`` accepts on
     its pedestal is laid down on it and left to settle (a dished board tips onto the pedestal's rim, a tapered leg
-    onto its chocks), and lies where it settles (:data:`SETTLE_MAX_TILT_DEG`, :data:`SETTLE_MAX_DROP_M`); so is a
-    part none of whose resting poses gives it a place (a frame of tubes that rocks as laid).
+    onto its chocks), and lies where it settles (:data:`planning.kitting_support.SETTLE_MAX_TILT_DEG`,
+    :data:`planning.kitting_support.SETTLE_MAX_DROP_M`); so is a part none of whose resting poses gives it a place
+    (a frame of tubes that rocks as laid).
     """
     reach = reach or Reach()
     layout = _Layout(names, dict(zip(names, meshes)), area, np.asarray(prefer_near_xy, dtype=np.float64), reach)

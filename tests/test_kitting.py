@@ -96,15 +96,15 @@ def test_a_ring_too_small_says_so():
     assert caught.value.kind == TOO_LARGE
 
 
-@pytest.mark.parametrize("diameter_m, pickable", [(0.012, False), (0.016, True)])
-def test_a_part_too_low_for_the_fingers_is_named_as_such(diameter_m, pickable):
+@pytest.mark.parametrize("diameter_m, laid_out", [(0.012, False), (0.016, True)])
+def test_a_part_too_low_for_the_fingers_is_named_as_such(diameter_m, laid_out):
     """A dowel 60 mm long lying on its support: at 12 mm across, every grasp's fingers reach below it into what it
     lies on, at every place, and the failure says the part is too small for the hand; at 16 mm it is laid out."""
     from planning.grasp import antipodal_grasps
 
     dowel = trimesh.creation.cylinder(diameter_m / 2, 0.06, sections=24)
     grasps = antipodal_grasps(dowel, np.random.default_rng(0))
-    if pickable:
+    if laid_out:
         assert plan_kitting(["dowel"], [dowel], {"dowel": grasps}, lambda n, g: True, AREA)
         return
     with pytest.raises(KittingError, match="part 'dowel': at no place in the kitting ring does any of its grasps "
@@ -307,11 +307,11 @@ def test_a_grasp_keeps_more_clearance_from_other_slots_than_from_its_own_pedesta
         return [(trimesh.creation.box(extents=(0.04, 0.04, 0.135)),
                  Pose(np.array([0.5 + offset + 0.02, 0.0, 0.0675]), np.array([1.0, 0.0, 0.0, 0.0])))]
 
-    def closest(pickable):  # the smallest offset (to 0.1 mm) at which the grasp is pickable
+    def closest(clear):  # the smallest offset (to 0.1 mm) at which the grasp is clear
         low, high = 0.0, 0.05
         while high - low > 1e-4:
             middle = 0.5 * (low + high)
-            low, high = (low, middle) if pickable(middle) else (middle, high)
+            low, high = (low, middle) if clear(middle) else (middle, high)
         return high
 
     as_support = closest(lambda offset: bool(pickable([grasp], world_from_bar, block(offset), 0.0)))

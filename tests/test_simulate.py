@@ -546,7 +546,8 @@ def test_an_untouched_kit_part_set_moving_is_put_back_where_it_came_to_rest():
     standing on its edge between chocks, gained speed between two checks with nothing touching it, was let go,
     tipped onto a chock, and its pick failed. Once the program runs, a kit part that nothing but static bodies has
     touched since it came to rest is put back there whatever its speed (here it is set sliding at 0.3 m/s); one
-    that something else has touched is let go when it moves."""
+    that something else has touched is let go when it moves (here a ball dropped on it between two checks, gone
+    before the next)."""
     from cell.simulate import _Cell, _Run, _StepRole
 
     settings = SimSettings()
@@ -569,13 +570,19 @@ def test_an_untouched_kit_part_set_moving_is_put_back_where_it_came_to_rest():
                 return np.array(pb.getBasePositionAndOrientation(body, physicsClientId=cid)[0])
 
             rest = wait(1.0)
-            if touched_first:
-                run.kit_disturbed.add("board")  # as after a touch by something that moves
+            if touched_first:  # a light ball dropped on it bounces off within a check's interval
+                ball = pb.createMultiBody(0.01, pb.createCollisionShape(pb.GEOM_SPHERE, radius=0.01,
+                                                                        physicsClientId=cid),
+                                          -1, (rest + [0.0, 0.0, 0.03]).tolist(), physicsClientId=cid)
+                pb.resetBaseVelocity(ball, [0.0, 0.5, -1.0], physicsClientId=cid)
+                wait(0.05)
+                pb.removeBody(ball, physicsClientId=cid)
+                assert "board" in run.kit_disturbed
             pb.resetBaseVelocity(body, [0.3, 0.0, 0.0], [0.0, 0.0, 0.0], physicsClientId=cid)
             return float(np.linalg.norm(wait(2.0) - rest))
 
     assert slid_m(touched_first=False) < 1e-6
-    assert slid_m(touched_first=True) > 0.01
+    assert slid_m(touched_first=True) > 0.005
 
 
 def test_a_rail_passes_the_top_edges_beside_it_with_a_tenth_of_a_millimetre_to_spare(arm):
