@@ -6,6 +6,7 @@ end so far that it topples unless it is fastened to a. The program is built here
 segments (top-down grasps), not by the cell's planner.
 """
 
+import contextlib
 import json
 from dataclasses import replace
 
@@ -495,15 +496,48 @@ def test_physics_settings_are_checked():
         SimSettings(rate_hz=240.0, contact_recovery_per_s=300.0)
 
 
+@contextlib.contextmanager
+def _kit_cell(board: SimPart, static: list, hold: bool = True, sleeping: bool = True):
+    """A run of the cell with ``board`` lying in the kit on ``static`` bodies, started (settled): yields the run,
+    ``wait(seconds)`` (steps the physics with the arm at home, returns the board's position) and ``throw(mass_kg,
+    radius_m, position, velocity)`` (a ball). ``hold``: False switches the kit hold off; ``sleeping``: False
+    keeps Bullet from putting the board to sleep."""
+    from cell.simulate import _Cell, _Run, _StepRole
+
+    settings = SimSettings()
+    with BulletClient() as client:
+        pb, cid = client.pb, client.client_id
+        configure_physics(pb, cid, settings)
+        cell = _Cell(client, [board], static, BASE, settings)
+        run = _Run(cell, 0.08, [board], settings)
+        if not hold:
+            run._hold_kit_still = lambda: None
+        body = cell.parts[board.name]
+        if not sleeping:
+            pb.changeDynamics(body, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING, physicsClientId=cid)
+        run.start(HOME)
+
+        def wait(seconds: float) -> np.ndarray:
+            for _ in range(int(round(seconds * settings.rate_hz))):
+                run.physics_step(HOME, np.zeros(7), _StepRole("waiting"))
+            return np.array(pb.getBasePositionAndOrientation(body, physicsClientId=cid)[0])
+
+        def throw(mass_kg: float, radius_m: float, position, velocity) -> int:
+            ball = pb.createMultiBody(mass_kg, pb.createCollisionShape(pb.GEOM_SPHERE, radius=radius_m,
+                                                                       physicsClientId=cid),
+                                      -1, list(position), physicsClientId=cid)
+            pb.resetBaseVelocity(ball, list(velocity), physicsClientId=cid)
+            return ball
+
+        yield run, wait, throw
+
+
 def test_a_kit_part_that_bullet_keeps_awake_is_held_still_until_touched():
     """Bullet does not always put a resting kit part back to sleep: woken by a board carried past within its contact
     margin, a cabinet's drawer back standing on its edge beside a creeping neighbour stayed awake, turned 10 degrees
     in 29 s, and the fingers came down on it. Whatever keeps it awake (here: sleeping switched off in Bullet), the
     run holds an untouched kit part still where it came to rest, which Bullet's solver alone lets creep; a ball
     thrown at it lets it go."""
-    from cell.simulate import _Cell, _Run, _StepRole
-
-    settings = SimSettings()
     size, half = (0.3, 0.014, 0.15), 0.15  # turned 0.3 rad about +z
     turn = [np.cos(half), 0.0, 0.0, np.sin(half)]
     normal = np.array([-np.sin(2 * half), np.cos(2 * half), 0.0])  # the board's face, world frame
@@ -511,29 +545,11 @@ def test_a_kit_part_that_bullet_keeps_awake_is_held_still_until_touched():
     static = [STATIC[0], StaticBody("pedestal", box((0.1, 0.03, 0.04)), at(0.35, 0.3, 0.02))]
 
     def creep(hold: bool) -> float:
-        with BulletClient() as client:
-            pb, cid = client.pb, client.client_id
-            configure_physics(pb, cid, settings)
-            cell = _Cell(client, [board], static, BASE, settings)
-            run = _Run(cell, 0.08, [board], settings)
-            if not hold:
-                run._hold_kit_still = lambda: None
-            body = cell.parts["board"]
-            pb.changeDynamics(body, -1, activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING, physicsClientId=cid)
-            run.start(HOME)
-
-            def wait(seconds):
-                for _ in range(int(round(seconds * settings.rate_hz))):
-                    run.physics_step(HOME, np.zeros(7), _StepRole("waiting"))
-                return np.array(pb.getBasePositionAndOrientation(body, physicsClientId=cid)[0])
-
+        with _kit_cell(board, static, hold=hold, sleeping=False) as (_, wait, throw):
             settled = wait(3.0)
-            later = wait(20.0 - 1.0 / settings.rate_hz)  # the last step is a check
+            later = wait(20.0 - 1.0 / SimSettings().rate_hz)  # the last step is a check
             if hold:
-                ball = pb.createMultiBody(1.0, pb.createCollisionShape(pb.GEOM_SPHERE, radius=0.02,
-                                                                       physicsClientId=cid),
-                                          -1, (later + 0.1 * normal + [0.0, 0.0, 0.06]).tolist(), physicsClientId=cid)
-                pb.resetBaseVelocity(ball, (-2.0 * normal).tolist(), physicsClientId=cid)  # near its top
+                throw(1.0, 0.02, later + 0.1 * normal + [0.0, 0.0, 0.06], -2.0 * normal)  # near its top
                 assert np.linalg.norm(wait(1.0) - later) > 0.01
             return float(np.linalg.norm(later - settled))
 
@@ -548,33 +564,16 @@ def test_an_untouched_kit_part_set_moving_is_put_back_where_it_came_to_rest():
     touched since it came to rest is put back there whatever its speed (here it is set sliding at 0.3 m/s); one
     that something else has touched is let go when it moves (here a ball dropped on it between two checks, gone
     before the next)."""
-    from cell.simulate import _Cell, _Run, _StepRole
-
-    settings = SimSettings()
     size = (0.2, 0.1, 0.02)
     board = SimPart("board", box(size), at(0.35, 0.3, 0.04 + size[2] / 2), at(0.5, 0.0, 0.3), (FIXTURE,))
     static = [STATIC[0], StaticBody("pedestal", box((0.16, 0.08, 0.04)), at(0.35, 0.3, 0.02))]
 
     def slid_m(touched_first: bool) -> float:
-        with BulletClient() as client:
-            pb, cid = client.pb, client.client_id
-            configure_physics(pb, cid, settings)
-            cell = _Cell(client, [board], static, BASE, settings)
-            run = _Run(cell, 0.08, [board], settings)
-            body = cell.parts["board"]
-            run.start(HOME)
-
-            def wait(seconds):
-                for _ in range(int(round(seconds * settings.rate_hz))):
-                    run.physics_step(HOME, np.zeros(7), _StepRole("waiting"))
-                return np.array(pb.getBasePositionAndOrientation(body, physicsClientId=cid)[0])
-
+        with _kit_cell(board, static) as (run, wait, throw):
+            pb, cid, body = run.pb, run.cid, run.cell.parts["board"]
             rest = wait(1.0)
             if touched_first:  # a light ball dropped on it bounces off within a check's interval
-                ball = pb.createMultiBody(0.01, pb.createCollisionShape(pb.GEOM_SPHERE, radius=0.01,
-                                                                        physicsClientId=cid),
-                                          -1, (rest + [0.0, 0.0, 0.03]).tolist(), physicsClientId=cid)
-                pb.resetBaseVelocity(ball, [0.0, 0.5, -1.0], physicsClientId=cid)
+                ball = throw(0.01, 0.01, rest + [0.0, 0.0, 0.03], [0.0, 0.5, -1.0])
                 wait(0.05)
                 pb.removeBody(ball, physicsClientId=cid)
                 assert "board" in run.kit_disturbed
