@@ -446,6 +446,7 @@ class _Run:
         self.steps_to_kit_check = 0
         self.kit_rest: dict[str, tuple] = {}  # kit part -> (position, orientation) where it is held still
         self.kit_disturbed: set[str] = set()  # kit parts something other than a static body has touched
+        self.static_bodies = frozenset(cell.static.values())
         self.kit_still: set[str] = set()  # kit parts found at rest, untouched, since the program started
         self.program_running = False  # the parts have settled (see start)
         self.arm_q = np.zeros(7)
@@ -601,13 +602,12 @@ class _Run:
         there: Bullet does not always let such a part sleep again once something passing has woken it), and let go
         when it moves faster. Once the program runs, a part found so at rest at one of these checks, which nothing
         has touched and which has not moved since the program started (:meth:`_note_kit_touches`), is held
-        whatever its speed: nothing can
-        set it moving (the kitting checked with physics that it rests there), while Bullet's contacts on a thin edge
-        can (cabinet_7's drawer back, an 8 mm board standing on its edge between chocks, gained speed untouched
-        between two checks, was let go, and tipped onto a chock). A part that tips while the parts settle falls,
-        and is reported; one that something touches is let go, and held again only where it comes to rest."""
+        whatever its speed: nothing can set it moving (the kitting checked with physics that it rests there), while
+        Bullet's contacts on a thin edge can (cabinet_7's drawer back, an 8 mm board standing on its edge between
+        chocks, gained speed untouched between two checks, was let go, and tipped onto a chock). A part that tips
+        while the parts settle falls, and is reported; one that something touches is let go, and held again only
+        where it comes to rest."""
         pb, cid, cell = self.pb, self.cid, self.cell
-        static = set(cell.static.values())
         for name, body in cell.parts.items():
             if name in self.awake or name == self.held:
                 self.kit_rest.pop(name, None)
@@ -615,7 +615,7 @@ class _Run:
                 continue
             linear, angular = pb.getBaseVelocity(body, physicsClientId=cid)
             speed = float(np.dot(linear, linear) + np.dot(angular, angular))
-            touched = any(point[2] not in static for point in pb.getContactPoints(bodyA=body, physicsClientId=cid))
+            touched = self._touched_by_moving_body(body)
             if touched:
                 self.kit_disturbed.add(name)
                 self.kit_still.discard(name)
@@ -638,14 +638,16 @@ class _Run:
         """Mark as touched (no longer held whatever its speed) every kit part that something other than a static
         body touches now: checked every step while the program runs, since a brief knock between two checks of
         :meth:`_hold_kit_still` would otherwise be undone there (about 2 microseconds a part a step)."""
-        pb, cid, cell = self.pb, self.cid, self.cell
-        static = set(cell.static.values())
         for name in list(self.kit_still):
-            if any(point[2] not in static for point in pb.getContactPoints(bodyA=cell.parts[name],
-                                                                             physicsClientId=cid)):
+            if self._touched_by_moving_body(self.cell.parts[name]):
                 self.kit_disturbed.add(name)
                 self.kit_still.discard(name)
                 self.kit_rest.pop(name, None)
+
+    def _touched_by_moving_body(self, body: int) -> bool:
+        """Whether anything but a static body (table, jig pads, pedestals) touches ``body`` now."""
+        return any(point[2] not in self.static_bodies
+                   for point in self.pb.getContactPoints(bodyA=body, physicsClientId=self.cid))
 
     def _wake(self, name: str) -> None:
         """``name`` wakes and never sleeps again: from the approach to its pick on, so that the approach, the grasp
